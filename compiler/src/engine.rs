@@ -1,0 +1,67 @@
+//! Running an emitted ONNX graph with tract: fixed input facts, optimised, ready to run.
+
+use std::sync::Arc;
+
+use tract_onnx::prelude::{self as tp, Framework, InferenceFact, InferenceModelExt};
+
+use crate::net::TensorSpec;
+use crate::{Error, Result, Tensor};
+
+type Plan = Arc<tp::TypedSimplePlan>;
+
+/// An ONNX graph loaded in tract, optimised and ready to run.
+pub struct OnnxRunner {
+    plan: Plan,
+    context: String,
+    inputs: Vec<TensorSpec>,
+    outputs: Vec<String>,
+}
+
+impl OnnxRunner {
+    /// Load ONNX `bytes` with the given fixed inputs (in order). `outputs` selects the values to
+    /// compute by name (any named value of the graph, not only its outputs); `None` keeps the
+    /// graph's own outputs. `context` names the graph in errors.
+    pub fn new(bytes: &[u8], context: &str, inputs: &[TensorSpec], outputs: Option<&[&str]>) -> Result<Self> {
+        let err = |e: tp::TractError| Error::tract(context, format!("{e:#}").replace('\n', " "));
+        let mut model = tract_onnx::onnx().model_for_read(&mut &*bytes).map_err(err)?;
+        for (i, spec) in inputs.iter().enumerate() {
+            model.set_input_fact(i, InferenceFact::dt_shape(f32::datum_type(), spec.shape)).map_err(err)?;
+        }
+        if let Some(names) = outputs {
+            model.select_outputs_by_name(names.iter()).map_err(err)?;
+        }
+        let names = model.output_outlets().map_err(err)?.iter().map(|o| model.outlet_label(*o).map(str::to_string).unwrap_or_else(|| model.node(o.node).name.clone())).collect();
+        let model = model.into_optimized().map_err(err)?;
+        let plan = tp::TypedSimplePlan::new(model).map_err(err)?;
+        Ok(OnnxRunner { plan, context: context.to_string(), inputs: inputs.to_vec(), outputs: names })
+    }
+
+    /// Names of the computed outputs, in order.
+    pub fn output_names(&self) -> &[String] {
+        &self.outputs
+    }
+
+    /// Run on `inputs` (in the order given at load); returns the outputs in order.
+    pub fn run(&self, inputs: &[&Tensor]) -> Result<Vec<Tensor>> {
+        let err = |e: tp::TractError| Error::tract(&self.context, format!("{e:#}").replace('\n', " "));
+        if inputs.len() != self.inputs.len() {
+            return Err(Error::tract(&self.context, format!("{} inputs given, {} expected", inputs.len(), self.inputs.len())));
+        }
+        let mut tv = tp::TVec::new();
+        for (t, spec) in inputs.iter().zip(&self.inputs) {
+            if t.shape != spec.shape {
+                return Err(Error::tract(&self.context, format!("input `{}` has shape {:?}, expected {:?}", spec.name, t.shape, spec.shape)));
+            }
+            tv.push(tp::Tensor::from_shape(&t.shape, &t.data).map_err(err)?.into());
+        }
+        let outs = self.plan.run(tv).map_err(err)?;
+        outs.iter()
+            .map(|o| {
+                let data = o.try_as_plain_ram().and_then(|v| v.as_slice::<f32>().map(|s| s.to_vec())).map_err(err)?;
+                Ok(Tensor::new(o.shape().to_vec(), data))
+            })
+            .collect()
+    }
+}
+
+use tract_onnx::prelude::Datum as _;

@@ -1,0 +1,26 @@
+//! `prl-compiler`: turns a PRL-Track checkpoint (official PyTorch `.pth`, `.safetensors`, or
+//! seeded random weights) into the network as two fixed-shape ONNX graphs (template and search),
+//! runs them with tract, and checks them against tensors exported from the official
+//! implementation.
+//!
+//! Layout: [`checkpoint`] reads weights without Python; [`Weights`] looks them up by scoped
+//! prefix so names equal checkpoint keys; [`onnx`] is a generic graph builder; [`net`] is the
+//! network; [`OnnxRunner`] runs a graph with tract; [`build`] writes model directories and
+//! [`verify`] compares every stage with golden tensors.
+
+pub mod checkpoint;
+mod engine;
+mod error;
+pub mod net;
+pub mod onnx;
+mod tensor;
+mod weights;
+mod artefacts;
+mod verify;
+
+pub use artefacts::{build, BuildOptions, BuildReport, Manifest, WeightsSource};
+pub use engine::OnnxRunner;
+pub use error::{Error, Result};
+pub use tensor::{relative_error, Tensor};
+pub use verify::{verify, read_golden, StageReport, VerifyReport};
+pub use weights::{Init, Scope, Weights};

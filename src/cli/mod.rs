@@ -1,0 +1,64 @@
+//! Command-line parsing and dispatch.
+
+mod build;
+mod verify;
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+/// The PRL-Track deployment toolchain.
+#[derive(Parser)]
+#[command(name = "prl", version, about = "PRL-Track toolchain: build the network as ONNX, verify it against the official implementation")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Emit template.onnx, search.onnx and manifest.json from a checkpoint or random weights.
+    Build(build::BuildArgs),
+    /// Run every stage with tract on golden tensors and compare with the official outputs.
+    Verify(verify::VerifyArgs),
+}
+
+/// Where the weights come from: a checkpoint, or seeded random weights.
+#[derive(Args, Clone)]
+#[group(required = false, multiple = false)]
+pub struct WeightsArgs {
+    /// Official PyTorch checkpoint (.pth) or .safetensors file.
+    #[arg(long, value_name = "FILE")]
+    pub checkpoint: Option<PathBuf>,
+    /// Seeded random weights (for users without a checkpoint; not a trained model).
+    #[arg(long, value_name = "N")]
+    pub random_seed: Option<u64>,
+}
+
+impl WeightsArgs {
+    /// The source, or `default` when neither option was given.
+    pub fn source_or(&self, default: impl FnOnce() -> prl_compiler::WeightsSource) -> prl_compiler::WeightsSource {
+        match (&self.checkpoint, self.random_seed) {
+            (Some(p), _) => prl_compiler::WeightsSource::Checkpoint(p.clone()),
+            (None, Some(s)) => prl_compiler::WeightsSource::Random(s),
+            (None, None) => default(),
+        }
+    }
+}
+
+/// Parse the command line and run it.
+pub fn run() -> anyhow::Result<()> {
+    match Cli::parse().command {
+        Command::Build(a) => build::run(a),
+        Command::Verify(a) => verify::run(a),
+    }
+}
+
+/// A spinner on stderr for steps that take more than a moment (hidden when not a terminal).
+pub fn spinner(msg: &str) -> indicatif::ProgressBar {
+    let pb = indicatif::ProgressBar::new_spinner();
+    pb.set_style(indicatif::ProgressStyle::with_template("{spinner} {msg} ({elapsed})").expect("static template"));
+    pb.enable_steady_tick(std::time::Duration::from_millis(120));
+    pb.set_message(msg.to_string());
+    pb
+}
