@@ -191,7 +191,10 @@ pub fn build(opts: &BuildOptions) -> Result<BuildReport> {
         },
     };
     let json = serde_json::to_vec_pretty(&manifest).map_err(|e| Error::Other(e.to_string()))?;
-    write_all_atomically(&opts.out, &[("template.onnx", &template), ("search.onnx", &search), ("manifest.json", &json)])?;
+    write_all_atomically(
+        &opts.out,
+        &[("template.onnx", &template), ("search.onnx", &search), ("manifest.json", &json)],
+    )?;
     Ok(BuildReport { manifest, out: opts.out.clone(), unused_keys: weights.unused_keys() })
 }
 
@@ -200,7 +203,9 @@ pub fn build(opts: &BuildOptions) -> Result<BuildReport> {
 pub(crate) fn write_all_atomically(dir: &Path, files: &[(&str, &[u8])]) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let tmp = |name: &str| dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let written: Result<()> = files.iter().try_for_each(|(name, bytes)| std::fs::write(tmp(name), bytes).map_err(|e| Error::io(dir.join(name), e)));
+    let written: Result<()> = files
+        .iter()
+        .try_for_each(|(name, bytes)| std::fs::write(tmp(name), bytes).map_err(|e| Error::io(dir.join(name), e)));
     if let Err(e) = written {
         files.iter().for_each(|(name, _)| drop(std::fs::remove_file(tmp(name))));
         return Err(e);

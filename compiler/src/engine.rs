@@ -30,7 +30,12 @@ impl OnnxRunner {
         if let Some(names) = outputs {
             model.select_outputs_by_name(names.iter()).map_err(err)?;
         }
-        let names = model.output_outlets().map_err(err)?.iter().map(|o| model.outlet_label(*o).map(str::to_string).unwrap_or_else(|| model.node(o.node).name.clone())).collect();
+        let names = model
+            .output_outlets()
+            .map_err(err)?
+            .iter()
+            .map(|o| model.outlet_label(*o).map(str::to_string).unwrap_or_else(|| model.node(o.node).name.clone()))
+            .collect();
         let model = model.into_optimized().map_err(err)?;
         let plan = tp::TypedSimplePlan::new(model).map_err(err)?;
         Ok(OnnxRunner { plan, context: context.to_string(), inputs: inputs.to_vec(), outputs: names })
@@ -45,12 +50,18 @@ impl OnnxRunner {
     pub fn run(&self, inputs: &[&Tensor]) -> Result<Vec<Tensor>> {
         let err = |e: tp::TractError| Error::tract(&self.context, format!("{e:#}").replace('\n', " "));
         if inputs.len() != self.inputs.len() {
-            return Err(Error::tract(&self.context, format!("{} inputs given, {} expected", inputs.len(), self.inputs.len())));
+            return Err(Error::tract(
+                &self.context,
+                format!("{} inputs given, {} expected", inputs.len(), self.inputs.len()),
+            ));
         }
         let mut tv = tp::TVec::new();
         for (t, spec) in inputs.iter().zip(&self.inputs) {
             if t.shape != spec.shape {
-                return Err(Error::tract(&self.context, format!("input `{}` has shape {:?}, expected {:?}", spec.name, t.shape, spec.shape)));
+                return Err(Error::tract(
+                    &self.context,
+                    format!("input `{}` has shape {:?}, expected {:?}", spec.name, t.shape, spec.shape),
+                ));
             }
             tv.push(tp::Tensor::from_shape(&t.shape, &t.data).map_err(err)?.into());
         }

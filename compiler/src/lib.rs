@@ -8,19 +8,19 @@
 //! network; [`OnnxRunner`] runs a graph with tract; [`build`] writes model directories and
 //! [`verify`] compares every stage with golden tensors.
 
+mod artefacts;
 pub mod checkpoint;
 mod engine;
 mod error;
 pub mod net;
 pub mod onnx;
 mod tensor;
-mod weights;
-mod artefacts;
 mod verify;
+mod weights;
 
 pub use artefacts::{build, BuildOptions, BuildReport, Manifest, WeightsSource};
 pub use engine::OnnxRunner;
 pub use error::{Error, Result};
 pub use tensor::{relative_error, Tensor};
-pub use verify::{verify, read_golden, StageReport, VerifyReport};
+pub use verify::{read_golden, verify, StageReport, VerifyReport};
 pub use weights::{Init, Scope, Weights};

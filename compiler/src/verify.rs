@@ -58,21 +58,37 @@ pub fn verify(weights: &Weights, golden: &BTreeMap<String, Tensor>, tolerance: f
     let mut compare = |spec: &TensorSpec, out: &Tensor| {
         if let Some(r) = golden.get(spec.name) {
             if r.shape != out.shape {
-                skipped.push((spec.name.to_string(), format!("golden shape {:?}, network gives {:?}", r.shape, out.shape)));
-                stages.push(StageReport { name: spec.name.into(), rel_error: f64::INFINITY, max_abs_error: f64::INFINITY, ok: false });
+                skipped.push((
+                    spec.name.to_string(),
+                    format!("golden shape {:?}, network gives {:?}", r.shape, out.shape),
+                ));
+                stages.push(StageReport {
+                    name: spec.name.into(),
+                    rel_error: f64::INFINITY,
+                    max_abs_error: f64::INFINITY,
+                    ok: false,
+                });
                 return;
             }
             let (rel, max_abs) = relative_error(&out.data, &r.data);
-            stages.push(StageReport { name: spec.name.into(), rel_error: rel, max_abs_error: max_abs, ok: rel <= tolerance });
+            stages.push(StageReport {
+                name: spec.name.into(),
+                rel_error: rel,
+                max_abs_error: max_abs,
+                ok: rel <= tolerance,
+            });
         }
     };
     let check_input = |spec: &TensorSpec| -> Result<Option<&Tensor>> {
         match golden.get(spec.name) {
-            Some(t) if t.shape != spec.shape => Err(Error::Other(format!("golden `{}` has shape {:?}, expected {:?}", spec.name, t.shape, spec.shape))),
+            Some(t) if t.shape != spec.shape => {
+                Err(Error::Other(format!("golden `{}` has shape {:?}, expected {:?}", spec.name, t.shape, spec.shape)))
+            }
             t => Ok(t),
         }
     };
-    let mut zf: Vec<Option<Tensor>> = net::TEMPLATE_FEATURES.iter().map(|s| check_input(s).map(Option::<&Tensor>::cloned)).collect::<Result<_>>()?;
+    let mut zf: Vec<Option<Tensor>> =
+        net::TEMPLATE_FEATURES.iter().map(|s| check_input(s).map(Option::<&Tensor>::cloned)).collect::<Result<_>>()?;
     if let Some(z) = check_input(&net::TEMPLATE_INPUT)? {
         let runner = OnnxRunner::new(&network.template.encode(""), "template graph", &[net::TEMPLATE_INPUT], None)?;
         let outs = runner.run(&[z])?;
@@ -84,10 +100,16 @@ pub fn verify(weights: &Weights, golden: &BTreeMap<String, Tensor>, tolerance: f
     let zf: Option<Vec<Tensor>> = zf.into_iter().collect();
     match (check_input(&net::SEARCH_INPUT)?, zf) {
         (Some(x), Some(zf)) => {
-            let wanted: Vec<TensorSpec> = net::SEARCH_STAGES.iter().chain(&net::SEARCH_OUTPUTS).filter(|s| golden.contains_key(s.name)).copied().collect();
+            let wanted: Vec<TensorSpec> = net::SEARCH_STAGES
+                .iter()
+                .chain(&net::SEARCH_OUTPUTS)
+                .filter(|s| golden.contains_key(s.name))
+                .copied()
+                .collect();
             if !wanted.is_empty() {
                 let names: Vec<&str> = wanted.iter().map(|s| s.name).collect();
-                let inputs: Vec<TensorSpec> = std::iter::once(net::SEARCH_INPUT).chain(net::TEMPLATE_FEATURES).collect();
+                let inputs: Vec<TensorSpec> =
+                    std::iter::once(net::SEARCH_INPUT).chain(net::TEMPLATE_FEATURES).collect();
                 let runner = OnnxRunner::new(&network.search.encode(""), "search graph", &inputs, Some(&names))?;
                 let mut args = vec![x];
                 args.extend(zf.iter());
@@ -97,10 +119,17 @@ pub fn verify(weights: &Weights, golden: &BTreeMap<String, Tensor>, tolerance: f
             }
         }
         (None, _) => skipped.extend(search_keys(golden).map(|k| (k, "no `x` in the golden file".to_string()))),
-        (Some(_), None) => skipped.extend(search_keys(golden).map(|k| (k, "neither `z` nor all of `zf1..zf5` in the golden file".to_string()))),
+        (Some(_), None) => skipped.extend(
+            search_keys(golden).map(|k| (k, "neither `z` nor all of `zf1..zf5` in the golden file".to_string())),
+        ),
     }
-    let known = |k: &str| k == "z" || k == "x" || net::TEMPLATE_FEATURES.iter().chain(&net::SEARCH_STAGES).chain(&net::SEARCH_OUTPUTS).any(|s| s.name == k);
-    skipped.extend(golden.keys().filter(|k| !known(k)).map(|k| (k.clone(), "not a tensor of this network".to_string())));
+    let known = |k: &str| {
+        k == "z"
+            || k == "x"
+            || net::TEMPLATE_FEATURES.iter().chain(&net::SEARCH_STAGES).chain(&net::SEARCH_OUTPUTS).any(|s| s.name == k)
+    };
+    skipped
+        .extend(golden.keys().filter(|k| !known(k)).map(|k| (k.clone(), "not a tensor of this network".to_string())));
     if stages.is_empty() {
         return Err(Error::Other("the golden file holds no tensor this network can be compared on (keys z, x, zf1..zf5, xf1..xf5, s1..s5, ar, sr1, sr2, hmg, loc, cls1, cls2)".into()));
     }
@@ -109,5 +138,9 @@ pub fn verify(weights: &Weights, golden: &BTreeMap<String, Tensor>, tolerance: f
 }
 
 fn search_keys(golden: &BTreeMap<String, Tensor>) -> impl Iterator<Item = String> + '_ {
-    net::SEARCH_STAGES.iter().chain(&net::SEARCH_OUTPUTS).filter(|s| golden.contains_key(s.name)).map(|s| s.name.to_string())
+    net::SEARCH_STAGES
+        .iter()
+        .chain(&net::SEARCH_OUTPUTS)
+        .filter(|s| golden.contains_key(s.name))
+        .map(|s| s.name.to_string())
 }

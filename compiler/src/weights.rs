@@ -99,7 +99,11 @@ impl Weights {
         self.used.borrow_mut().insert(key.to_string());
         match &self.source {
             Source::Checkpoint(c) => {
-                let missing = || Error::MissingWeight { source_name: self.source_name(), key: key.into(), expected: shape.to_vec() };
+                let missing = || Error::MissingWeight {
+                    source_name: self.source_name(),
+                    key: key.into(),
+                    expected: shape.to_vec(),
+                };
                 match c.entries.get(key).ok_or_else(missing)? {
                     Entry::Tensor { tensor, .. } if tensor.shape == shape => Ok(tensor.clone()),
                     Entry::Tensor { tensor, .. } => Err(Error::WrongShape {
@@ -108,7 +112,9 @@ impl Weights {
                         expected: shape.to_vec(),
                         actual: tensor.shape.clone(),
                     }),
-                    Entry::Other(what) => Err(Error::NotATensor { source_name: self.source_name(), key: key.into(), what: what.clone() }),
+                    Entry::Other(what) => {
+                        Err(Error::NotATensor { source_name: self.source_name(), key: key.into(), what: what.clone() })
+                    }
                 }
             }
             Source::Random(seed) => Ok(random_tensor(*seed, key, shape, init)),

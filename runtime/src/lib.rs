@@ -6,7 +6,8 @@
 //! plans and the tracking loop come with the next milestone.
 
 /// Tracker hyper-parameters of the official PRL-Track configuration.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct TrackerConfig {
     /// Template crop side (`EXEMPLAR_SIZE`).
     pub exemplar_size: usize,

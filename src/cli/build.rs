@@ -29,8 +29,18 @@ pub fn run(a: BuildArgs) -> anyhow::Result<()> {
     pb.finish_and_clear();
     let report = report?;
     let m = &report.manifest;
-    println!("wrote {} ({}), {} and manifest.json to {}", m.template.file, short(&m.template.sha256), m.search.file, report.out.display());
-    println!("weights: {}{}", m.weights.note, m.weights.sha256.as_deref().map(|s| format!(" (sha256 {})", short(s))).unwrap_or_default());
+    println!(
+        "wrote {} ({}), {} and manifest.json to {}",
+        m.template.file,
+        short(&m.template.sha256),
+        m.search.file,
+        report.out.display()
+    );
+    println!(
+        "weights: {}{}",
+        m.weights.note,
+        m.weights.sha256.as_deref().map(|s| format!(" (sha256 {})", short(s))).unwrap_or_default()
+    );
     if !report.unused_keys.is_empty() {
         if a.verbose {
             println!("{} checkpoint keys not used by the network:", report.unused_keys.len());

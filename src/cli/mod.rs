@@ -9,7 +9,11 @@ use clap::{Args, Parser, Subcommand};
 
 /// The PRL-Track deployment toolchain.
 #[derive(Parser)]
-#[command(name = "prl", version, about = "PRL-Track toolchain: build the network as ONNX, verify it against the official implementation")]
+#[command(
+    name = "prl",
+    version,
+    about = "PRL-Track toolchain: build the network as ONNX, verify it against the official implementation"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

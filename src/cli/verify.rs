@@ -37,7 +37,13 @@ pub fn run(a: VerifyArgs) -> anyhow::Result<()> {
     } else {
         println!("{:<6} {:>12} {:>12}  result (tolerance {:e})", "tensor", "rel error", "max abs", a.tolerance);
         for s in &report.stages {
-            println!("{:<6} {:>12.3e} {:>12.3e}  {}", s.name, s.rel_error, s.max_abs_error, if s.ok { "ok" } else { "FAIL" });
+            println!(
+                "{:<6} {:>12.3e} {:>12.3e}  {}",
+                s.name,
+                s.rel_error,
+                s.max_abs_error,
+                if s.ok { "ok" } else { "FAIL" }
+            );
         }
         for (k, why) in &report.skipped {
             println!("skipped {k}: {why}");

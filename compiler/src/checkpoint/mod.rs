@@ -89,11 +89,15 @@ impl Checkpoint {
         } else if bytes.len() >= 8 && bytes.get(8) == Some(&b'{') {
             safetensors_file::read(path, bytes)?
         } else if bytes.starts_with(&[0x80]) {
-            return Err(Error::format(path, "legacy (pre-1.6) torch serialisation is not supported: re-save it with a current torch.save"));
+            return Err(Error::format(
+                path,
+                "legacy (pre-1.6) torch serialisation is not supported: re-save it with a current torch.save",
+            ));
         } else {
             return Err(Error::format(path, "neither a torch zip archive nor a safetensors file"));
         };
-        let entries = raw.into_iter().map(|(k, v)| (k.strip_prefix("module.").map(str::to_string).unwrap_or(k), v)).collect();
+        let entries =
+            raw.into_iter().map(|(k, v)| (k.strip_prefix("module.").map(str::to_string).unwrap_or(k), v)).collect();
         Ok(Checkpoint { path: path.to_path_buf(), sha256, entries })
     }
 }

@@ -23,7 +23,11 @@ pub enum Value {
     /// A reference to a global (`module.name`), never resolved to code.
     Global(String, String),
     /// `callee(*args)` recorded, not performed (REDUCE, NEWOBJ); `state` from BUILD.
-    Call { callee: Box<Value>, args: Box<Value>, state: Option<Box<Value>> },
+    Call {
+        callee: Box<Value>,
+        args: Box<Value>,
+        state: Option<Box<Value>>,
+    },
     /// A persistent id (`BINPERSID`): torch uses it for storages.
     Persistent(Box<Value>),
 }
@@ -148,13 +152,24 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
             }};
         }
         match op {
-            0x80 => { r.u8()?; } // PROTO
-            0x95 => { r.u64()?; } // FRAME
+            0x80 => {
+                r.u8()?;
+            } // PROTO
+            0x95 => {
+                r.u64()?;
+            } // FRAME
             b'.' => return stack.pop().ok_or(bad("empty stack at STOP")),
             b'(' => marks.push(stack.len()),
-            b'0' => { pop!(); }
-            b'1' => { let _ = pop_mark!(); }
-            b'2' => { let v = stack.last().ok_or(bad("stack underflow"))?.clone(); stack.push(v) }
+            b'0' => {
+                pop!();
+            }
+            b'1' => {
+                let _ = pop_mark!();
+            }
+            b'2' => {
+                let v = stack.last().ok_or(bad("stack underflow"))?.clone();
+                stack.push(v)
+            }
             b'N' => stack.push(Value::None),
             0x88 => stack.push(Value::Bool(true)),
             0x89 => stack.push(Value::Bool(false)),
@@ -190,32 +205,87 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
             }
             b'G' => stack.push(Value::Float(f64::from_be_bytes(r.take(8)?.try_into().unwrap()))),
             b'F' => stack.push(Value::Float(r.line()?.parse().map_err(|_| bad("bad FLOAT"))?)),
-            b'X' => { let n = r.u32()? as usize; stack.push(Value::Str(r.string(n)?)) }
-            0x8c => { let n = r.u8()? as usize; stack.push(Value::Str(r.string(n)?)) }
-            0x8d => { let n = r.u64()? as usize; stack.push(Value::Str(r.string(n)?)) }
+            b'X' => {
+                let n = r.u32()? as usize;
+                stack.push(Value::Str(r.string(n)?))
+            }
+            0x8c => {
+                let n = r.u8()? as usize;
+                stack.push(Value::Str(r.string(n)?))
+            }
+            0x8d => {
+                let n = r.u64()? as usize;
+                stack.push(Value::Str(r.string(n)?))
+            }
             b'V' => stack.push(Value::Str(r.line()?)),
             b'S' => stack.push(Value::Str(r.line()?.trim_matches(|c| c == '\'' || c == '"').to_string())),
-            b'U' => { let n = r.u8()? as usize; stack.push(Value::Bytes(r.take(n)?.to_vec())) }
-            b'T' => { let n = r.u32()? as usize; stack.push(Value::Bytes(r.take(n)?.to_vec())) }
-            b'C' => { let n = r.u8()? as usize; stack.push(Value::Bytes(r.take(n)?.to_vec())) }
-            b'B' => { let n = r.u32()? as usize; stack.push(Value::Bytes(r.take(n)?.to_vec())) }
-            0x8e | 0x96 => { let n = r.u64()? as usize; stack.push(Value::Bytes(r.take(n)?.to_vec())) }
+            b'U' => {
+                let n = r.u8()? as usize;
+                stack.push(Value::Bytes(r.take(n)?.to_vec()))
+            }
+            b'T' => {
+                let n = r.u32()? as usize;
+                stack.push(Value::Bytes(r.take(n)?.to_vec()))
+            }
+            b'C' => {
+                let n = r.u8()? as usize;
+                stack.push(Value::Bytes(r.take(n)?.to_vec()))
+            }
+            b'B' => {
+                let n = r.u32()? as usize;
+                stack.push(Value::Bytes(r.take(n)?.to_vec()))
+            }
+            0x8e | 0x96 => {
+                let n = r.u64()? as usize;
+                stack.push(Value::Bytes(r.take(n)?.to_vec()))
+            }
             b')' => stack.push(Value::Tuple(vec![])),
-            b't' => { let items = pop_mark!(); stack.push(Value::Tuple(items)) }
-            0x85 => { let a = pop!(); stack.push(Value::Tuple(vec![a])) }
-            0x86 => { let b = pop!(); let a = pop!(); stack.push(Value::Tuple(vec![a, b])) }
-            0x87 => { let c = pop!(); let b = pop!(); let a = pop!(); stack.push(Value::Tuple(vec![a, b, c])) }
+            b't' => {
+                let items = pop_mark!();
+                stack.push(Value::Tuple(items))
+            }
+            0x85 => {
+                let a = pop!();
+                stack.push(Value::Tuple(vec![a]))
+            }
+            0x86 => {
+                let b = pop!();
+                let a = pop!();
+                stack.push(Value::Tuple(vec![a, b]))
+            }
+            0x87 => {
+                let c = pop!();
+                let b = pop!();
+                let a = pop!();
+                stack.push(Value::Tuple(vec![a, b, c]))
+            }
             b']' => stack.push(Value::List(Default::default())),
-            b'l' => { let items = pop_mark!(); stack.push(Value::List(Rc::new(RefCell::new(items)))) }
+            b'l' => {
+                let items = pop_mark!();
+                stack.push(Value::List(Rc::new(RefCell::new(items))))
+            }
             b'}' => stack.push(Value::Dict(Default::default())),
             b'd' => {
                 let items = pop_mark!();
                 stack.push(Value::Dict(Rc::new(RefCell::new(pairs(items).ok_or(bad("odd dict items"))?))))
             }
             0x8f => stack.push(Value::List(Default::default())), // EMPTY_SET: kept as a list
-            0x90 | 0x91 => { let items = pop_mark!(); if op == 0x91 { stack.push(Value::List(Rc::new(RefCell::new(items)))) } else { extend(stack.last(), items).ok_or(bad("ADDITEMS on non-set"))? } }
-            b'a' => { let v = pop!(); extend(stack.last(), vec![v]).ok_or(bad("APPEND on non-list"))? }
-            b'e' => { let items = pop_mark!(); extend(stack.last(), items).ok_or(bad("APPENDS on non-list"))? }
+            0x90 | 0x91 => {
+                let items = pop_mark!();
+                if op == 0x91 {
+                    stack.push(Value::List(Rc::new(RefCell::new(items))))
+                } else {
+                    extend(stack.last(), items).ok_or(bad("ADDITEMS on non-set"))?
+                }
+            }
+            b'a' => {
+                let v = pop!();
+                extend(stack.last(), vec![v]).ok_or(bad("APPEND on non-list"))?
+            }
+            b'e' => {
+                let items = pop_mark!();
+                extend(stack.last(), items).ok_or(bad("APPENDS on non-list"))?
+            }
             b's' => {
                 let v = pop!();
                 let k = pop!();
@@ -226,7 +296,11 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
                 let items = pairs(items).ok_or(bad("odd SETITEMS"))?;
                 set_items(stack.last(), items).ok_or(bad("SETITEMS on non-dict"))?
             }
-            b'c' => { let m = r.line()?; let n = r.line()?; stack.push(Value::Global(m, n)) }
+            b'c' => {
+                let m = r.line()?;
+                let n = r.line()?;
+                stack.push(Value::Global(m, n))
+            }
             0x93 => {
                 let n = pop!();
                 let m = pop!();
@@ -258,15 +332,39 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
                     _ => {}
                 }
             }
-            b'Q' => { let pid = pop!(); stack.push(Value::Persistent(Box::new(pid))) }
+            b'Q' => {
+                let pid = pop!();
+                stack.push(Value::Persistent(Box::new(pid)))
+            }
             b'P' => stack.push(Value::Persistent(Box::new(Value::Str(r.line()?)))),
-            b'q' => { let k = r.u8()? as u64; memo.insert(k, stack.last().ok_or(bad("PUT on empty stack"))?.clone()); }
-            b'r' => { let k = r.u32()? as u64; memo.insert(k, stack.last().ok_or(bad("PUT on empty stack"))?.clone()); }
-            b'p' => { let k = r.line()?.parse().map_err(|_| bad("bad PUT"))?; memo.insert(k, stack.last().ok_or(bad("PUT on empty stack"))?.clone()); }
-            0x94 => { let k = memo.len() as u64; memo.insert(k, stack.last().ok_or(bad("MEMOIZE on empty stack"))?.clone()); }
-            b'h' => { let k = r.u8()? as u64; stack.push(memo.get(&k).ok_or(bad("unknown memo key"))?.clone()) }
-            b'j' => { let k = r.u32()? as u64; stack.push(memo.get(&k).ok_or(bad("unknown memo key"))?.clone()) }
-            b'g' => { let k: u64 = r.line()?.parse().map_err(|_| bad("bad GET"))?; stack.push(memo.get(&k).ok_or(bad("unknown memo key"))?.clone()) }
+            b'q' => {
+                let k = r.u8()? as u64;
+                memo.insert(k, stack.last().ok_or(bad("PUT on empty stack"))?.clone());
+            }
+            b'r' => {
+                let k = r.u32()? as u64;
+                memo.insert(k, stack.last().ok_or(bad("PUT on empty stack"))?.clone());
+            }
+            b'p' => {
+                let k = r.line()?.parse().map_err(|_| bad("bad PUT"))?;
+                memo.insert(k, stack.last().ok_or(bad("PUT on empty stack"))?.clone());
+            }
+            0x94 => {
+                let k = memo.len() as u64;
+                memo.insert(k, stack.last().ok_or(bad("MEMOIZE on empty stack"))?.clone());
+            }
+            b'h' => {
+                let k = r.u8()? as u64;
+                stack.push(memo.get(&k).ok_or(bad("unknown memo key"))?.clone())
+            }
+            b'j' => {
+                let k = r.u32()? as u64;
+                stack.push(memo.get(&k).ok_or(bad("unknown memo key"))?.clone())
+            }
+            b'g' => {
+                let k: u64 = r.line()?.parse().map_err(|_| bad("bad GET"))?;
+                stack.push(memo.get(&k).ok_or(bad("unknown memo key"))?.clone())
+            }
             _ => return Err(PickleError::Opcode { op, at }),
         }
     }

@@ -13,7 +13,8 @@ type Archive<'a> = zip::ZipArchive<Cursor<&'a [u8]>>;
 
 pub(super) fn read(path: &Path, bytes: &[u8]) -> Result<BTreeMap<String, Entry>> {
     let bad = |msg: String| Error::format(path, msg);
-    let mut zip = zip::ZipArchive::new(Cursor::new(bytes)).map_err(|e| bad(format!("corrupt or truncated zip archive: {e}")))?;
+    let mut zip =
+        zip::ZipArchive::new(Cursor::new(bytes)).map_err(|e| bad(format!("corrupt or truncated zip archive: {e}")))?;
     let pkl_name = zip
         .file_names()
         .filter(|n| n.ends_with("data.pkl") && n.matches('/').count() <= 1)
@@ -28,7 +29,9 @@ pub(super) fn read(path: &Path, bytes: &[u8]) -> Result<BTreeMap<String, Entry>>
     }
     let pkl = read_entry(&mut zip, &pkl_name).map_err(|e| bad(format!("{pkl_name}: {e}")))?;
     let root = pickle::parse(&pkl).map_err(|e| bad(format!("{pkl_name}: {e}")))?;
-    let state = state_dict(&root).ok_or_else(|| bad(format!("{pkl_name}: not a state dict (a dict of tensors, or a dict with a `state_dict` entry)")))?;
+    let state = state_dict(&root).ok_or_else(|| {
+        bad(format!("{pkl_name}: not a state dict (a dict of tensors, or a dict with a `state_dict` entry)"))
+    })?;
     let mut out = BTreeMap::new();
     for (k, v) in state {
         let Some(key) = k.as_str() else { continue };
@@ -90,7 +93,9 @@ fn rebuild(v: &Value) -> std::result::Result<TensorSpec, String> {
                 return Err("a malformed tensor record".into());
             };
             let (dtype, key, numel) = storage_of(storage)?;
-            let dims = |v: &Value| -> Option<Vec<usize>> { v.items()?.iter().map(|d| d.as_int().and_then(|i| usize::try_from(i).ok())).collect() };
+            let dims = |v: &Value| -> Option<Vec<usize>> {
+                v.items()?.iter().map(|d| d.as_int().and_then(|i| usize::try_from(i).ok())).collect()
+            };
             let offset = offset.as_int().and_then(|i| usize::try_from(i).ok()).ok_or("a bad storage offset")?;
             let size = dims(size).ok_or("a bad tensor size")?;
             let stride = dims(stride).ok_or("a bad tensor stride")?;
@@ -125,7 +130,8 @@ fn storage_of(v: &Value) -> std::result::Result<(DType, String, usize), String> 
         "torch.LongStorage" => DType::I64,
         other => return Err(format!("an unsupported storage type `{other}`")),
     };
-    let key = key.as_str().map(str::to_string).or_else(|| key.as_int().map(|i| i.to_string())).ok_or("a bad storage key")?;
+    let key =
+        key.as_str().map(str::to_string).or_else(|| key.as_int().map(|i| i.to_string())).ok_or("a bad storage key")?;
     let numel = numel.as_int().and_then(|i| usize::try_from(i).ok()).ok_or("a bad storage size")?;
     Ok((dtype, key, numel))
 }
@@ -144,7 +150,10 @@ impl TensorSpec {
         }
         let last = self.offset + self.size.iter().zip(&self.stride).map(|(s, t)| (s - 1) * t).sum::<usize>();
         if last >= self.numel {
-            return Err(format!("size {:?} / stride {:?} / offset {} reach past its storage of {} elements", self.size, self.stride, self.offset, self.numel));
+            return Err(format!(
+                "size {:?} / stride {:?} / offset {} reach past its storage of {} elements",
+                self.size, self.stride, self.offset, self.numel
+            ));
         }
         let storage = self.dtype.decode(&raw[..self.numel * es]);
         // Gather in row-major order, honouring arbitrary strides.

@@ -11,7 +11,13 @@ pub const CHANNELS: [usize; 5] = [96, 256, 384, 384, 256];
 /// Run layers 1..5 on `input` (BGR, 0..255); the outputs are named `{prefix}1`..`{prefix}5`.
 pub(crate) fn backbone(g: &mut Graph, w: &Scope, input: &Value, prefix: &str) -> Result<Vec<Value>> {
     // (kernel, stride, max-pool after, ReLU, random-init activation scale)
-    let layers = [(11, 2, true, true, 200.0), (5, 1, true, true, 2.0), (3, 1, false, true, 1.0), (3, 1, false, true, 1.0), (3, 1, false, false, 1.0)];
+    let layers = [
+        (11, 2, true, true, 200.0),
+        (5, 1, true, true, 2.0),
+        (3, 1, false, true, 1.0),
+        (3, 1, false, true, 1.0),
+        (3, 1, false, false, 1.0),
+    ];
     let mut outs = Vec::new();
     let mut x = input.clone();
     let mut cin = 3;
@@ -19,7 +25,15 @@ pub(crate) fn backbone(g: &mut Graph, w: &Scope, input: &Value, prefix: &str) ->
         let l = w.pp(format!("layer{}", i + 1));
         let name = format!("backbone.layer{}", i + 1);
         let out = format!("{prefix}{}", i + 1);
-        let spec = ConvSpec { conv: l.pp(0), cin, cout: CHANNELS[i], k, opts: ConvOpts::stride(stride), bias: true, gain: 1.0 };
+        let spec = ConvSpec {
+            conv: l.pp(0),
+            cin,
+            cout: CHANNELS[i],
+            k,
+            opts: ConvOpts::stride(stride),
+            bias: true,
+            gain: 1.0,
+        };
         let conv_name = if !pool && !relu { out.clone() } else { format!("{name}.conv") };
         x = conv_bn(g, &conv_name, &x, &spec, &l.pp(1), scale)?;
         if pool {

@@ -12,7 +12,8 @@ const GROUPS: usize = 32;
 fn tower(g: &mut Graph, w: &Scope, name: &str, x: &Value) -> Result<Value> {
     let mut x = x.clone();
     for (c, n) in [(0, 1), (3, 4), (6, 7)] {
-        let spec = ConvSpec { conv: w.pp(c), cin: C, cout: C, k: 3, opts: ConvOpts::stride_pad(1, 1), bias: true, gain: 1.0 };
+        let spec =
+            ConvSpec { conv: w.pp(c), cin: C, cout: C, k: 3, opts: ConvOpts::stride_pad(1, 1), bias: true, gain: 1.0 };
         x = conv(g, &format!("{name}.{c}"), &x, &spec)?;
         let gn = w.pp(n);
         let s = g.constant(&gn.key("weight"), &gn.get("weight", &[C], Init::Uniform { lo: 0.8, hi: 1.2 })?)?;
@@ -25,7 +26,8 @@ fn tower(g: &mut Graph, w: &Scope, name: &str, x: &Value) -> Result<Value> {
 
 /// `loc` [1,4,11,11], `cls1` [1,2,11,11], `cls2` [1,1,11,11] from the HMG output.
 pub(crate) fn heads(g: &mut Graph, w: &Scope, x: &Value) -> Result<[Value; 3]> {
-    let out = |conv, cout, gain| ConvSpec { conv, cin: C, cout, k: 3, opts: ConvOpts::stride_pad(1, 1), bias: true, gain };
+    let out =
+        |conv, cout, gain| ConvSpec { conv, cin: C, cout, k: 3, opts: ConvOpts::stride_pad(1, 1), bias: true, gain };
     let l = tower(g, &w.pp("convloc"), "grader.convloc", x)?;
     // Random weights: small regression outputs centred so that boxes come out plausible.
     let loc = conv_with_bias_init(g, "loc", &l, &out(w.pp("convloc").pp(9), 4, 0.05), 0.3)?;

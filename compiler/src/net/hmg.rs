@@ -37,7 +37,14 @@ pub fn sincos_pos_embed(dim: usize, grid: usize) -> Tensor {
 /// thirds per head (q3, q4, q5 ...), and the output concatenates
 /// `softmax(q4·[k3;k4]ᵀ·s)·[v3;v4]`, `softmax(q5·[k3;k5]ᵀ·s)·[v3;v5]`, `softmax(q5·[k4;k5]ᵀ·s)·[v4;v5]`
 /// (each head-major), with `s = (3p)^-1/2`. `qkv` is [1, N, 3·3·p·heads].
-pub fn hierarchical_attention(g: &mut Graph, name: &str, qkv: &Value, tokens: usize, heads: usize, part: usize) -> Result<Value> {
+pub fn hierarchical_attention(
+    g: &mut Graph,
+    name: &str,
+    qkv: &Value,
+    tokens: usize,
+    heads: usize,
+    part: usize,
+) -> Result<Value> {
     let (n, h, p) = (tokens as i64, heads as i64, part as i64);
     let head_dim = 3 * part;
     // [N, 3(qkv), H, 3(part), p] -> [3(qkv), 3(part), H, N, p] -> [9, H, N, p]: q3 q4 q5 k3 k4 k5 v3 v4 v5.
@@ -71,7 +78,15 @@ pub fn hierarchical_attention(g: &mut Graph, name: &str, qkv: &Value, tokens: us
 /// HMG on the three regulator outputs; returns [1,192,11,11] named `name`.
 pub(crate) fn hmg(g: &mut Graph, w: &Scope, name: &str, feats: [&Value; 3]) -> Result<Value> {
     let n = |s: &str| format!("{name}.{s}");
-    let proj = ConvSpec { conv: w.pp("patch_embed").pp("proj"), cin: EMBED, cout: EMBED, k: 1, opts: ConvOpts::default(), bias: true, gain: 1.0 };
+    let proj = ConvSpec {
+        conv: w.pp("patch_embed").pp("proj"),
+        cin: EMBED,
+        cout: EMBED,
+        k: 1,
+        opts: ConvOpts::default(),
+        bias: true,
+        gain: 1.0,
+    };
     let (pw, pb) = conv_weights(g, &proj, 0.0)?;
     let mut tokens = Vec::new();
     for (i, f) in feats.into_iter().enumerate() {

@@ -38,7 +38,13 @@ pub(crate) fn conv(g: &mut Graph, name: &str, x: &Value, spec: &ConvSpec) -> Res
 }
 
 /// `conv(x)` whose random bias centres on `bias_mean`.
-pub(crate) fn conv_with_bias_init(g: &mut Graph, name: &str, x: &Value, spec: &ConvSpec, bias_mean: f32) -> Result<Value> {
+pub(crate) fn conv_with_bias_init(
+    g: &mut Graph,
+    name: &str,
+    x: &Value,
+    spec: &ConvSpec,
+    bias_mean: f32,
+) -> Result<Value> {
     let (w, b) = conv_weights(g, spec, bias_mean)?;
     g.conv(name, x, &w, b.as_ref(), spec.opts)
 }
@@ -56,7 +62,14 @@ pub(crate) fn conv_weights(g: &mut Graph, spec: &ConvSpec, bias_mean: f32) -> Re
 /// `bn(conv(x))` with the BatchNorm (scope `bn`) folded into the convolution's weights, in f64.
 /// `act_scale` is the rough size of the convolution's output, used only by random weights to
 /// give the BatchNorm statistics that keep activations in range.
-pub(crate) fn conv_bn(g: &mut Graph, name: &str, x: &Value, spec: &ConvSpec, bn: &Scope, act_scale: f32) -> Result<Value> {
+pub(crate) fn conv_bn(
+    g: &mut Graph,
+    name: &str,
+    x: &Value,
+    spec: &ConvSpec,
+    bn: &Scope,
+    act_scale: f32,
+) -> Result<Value> {
     let c = spec.cout;
     let gamma = bn.get("weight", &[c], Init::Uniform { lo: 0.8, hi: 1.2 })?;
     let beta = bn.get("bias", &[c], Init::Normal { mean: 0.0, std: 0.1 })?;
@@ -82,9 +95,22 @@ pub(crate) fn conv_bn(g: &mut Graph, name: &str, x: &Value, spec: &ConvSpec, bn:
 }
 
 /// A PyTorch `nn.Linear` (`weight` [out, in], optional `bias`) on the last axis of `x`.
-pub(crate) fn linear(g: &mut Graph, name: &str, x: &Value, w: &Scope, cin: usize, cout: usize, bias: bool, gain: f32) -> Result<Value> {
+pub(crate) fn linear(
+    g: &mut Graph,
+    name: &str,
+    x: &Value,
+    w: &Scope,
+    cin: usize,
+    cout: usize,
+    bias: bool,
+    gain: f32,
+) -> Result<Value> {
     let wt = g.constant(&w.key("weight"), &w.get("weight", &[cout, cin], Init::Fan { fan_in: cin, gain })?)?;
-    let b = if bias { Some(g.constant(&w.key("bias"), &w.get("bias", &[cout], Init::Normal { mean: 0.0, std: 0.02 })?)?) } else { None };
+    let b = if bias {
+        Some(g.constant(&w.key("bias"), &w.get("bias", &[cout], Init::Normal { mean: 0.0, std: 0.02 })?)?)
+    } else {
+        None
+    };
     g.linear(name, x, &wt, b.as_ref())
 }
 

@@ -35,12 +35,18 @@ const fn t(name: &'static str, shape: &'static [usize]) -> TensorSpec {
 /// Template graph input.
 pub const TEMPLATE_INPUT: TensorSpec = t("z", &[1, 3, TEMPLATE_SIZE, TEMPLATE_SIZE]);
 /// Template graph outputs (search graph inputs after `x`): backbone layers 1..5 of the template.
-pub const TEMPLATE_FEATURES: [TensorSpec; 5] =
-    [t("zf1", &[1, 96, 29, 29]), t("zf2", &[1, 256, 12, 12]), t("zf3", &[1, 384, 10, 10]), t("zf4", &[1, 384, 8, 8]), t("zf5", &[1, 256, 6, 6])];
+pub const TEMPLATE_FEATURES: [TensorSpec; 5] = [
+    t("zf1", &[1, 96, 29, 29]),
+    t("zf2", &[1, 256, 12, 12]),
+    t("zf3", &[1, 384, 10, 10]),
+    t("zf4", &[1, 384, 8, 8]),
+    t("zf5", &[1, 256, 6, 6]),
+];
 /// Search graph image input.
 pub const SEARCH_INPUT: TensorSpec = t("x", &[1, 3, SEARCH_SIZE, SEARCH_SIZE]);
 /// Search graph outputs.
-pub const SEARCH_OUTPUTS: [TensorSpec; 3] = [t("loc", &[1, 4, 11, 11]), t("cls1", &[1, 2, 11, 11]), t("cls2", &[1, 1, 11, 11])];
+pub const SEARCH_OUTPUTS: [TensorSpec; 3] =
+    [t("loc", &[1, 4, 11, 11]), t("cls1", &[1, 2, 11, 11]), t("cls2", &[1, 1, 11, 11])];
 /// Intermediate stages of the search graph, in execution order (named values, verifiable).
 pub const SEARCH_STAGES: [TensorSpec; 14] = [
     t("xf1", &[1, 96, 69, 69]),

@@ -36,7 +36,14 @@ pub fn upsample_nearest(g: &mut Graph, name: &str, x: &Value, src: usize, dst: u
 }
 
 /// AR on `s3`, gated by `s1` (through LIP) and `s2`: [1,192,11,11], named `name`.
-pub(crate) fn appearance_regulator(g: &mut Graph, w: &Scope, name: &str, s3: &Value, s1: &Value, s2: &Value) -> Result<Value> {
+pub(crate) fn appearance_regulator(
+    g: &mut Graph,
+    w: &Scope,
+    name: &str,
+    s3: &Value,
+    s1: &Value,
+    s2: &Value,
+) -> Result<Value> {
     let n = |s: &str| format!("{name}.{s}");
     let one = |conv, cin| ConvSpec { conv, cin, cout: 1, k: 1, opts: ConvOpts::default(), bias: true, gain: 1.0 };
     let g1 = conv_bn(g, &n("conv1"), s1, &one(w.pp("conv1"), 96), &w.pp("bn"), 200.0)?;
@@ -47,23 +54,47 @@ pub(crate) fn appearance_regulator(g: &mut Graph, w: &Scope, name: &str, s3: &Va
     let g12 = g.relu(&n("relu"), &g12)?;
     let gating = g.mul(&n("gating"), s3, &g12)?;
     let x = g.add(&n("gated"), s3, &gating)?;
-    let spec = ConvSpec { conv: w.pp("conv").pp(0), cin: 384, cout: WIDTH, k: 3, opts: ConvOpts::stride_pad(2, 1), bias: false, gain: 1.0 };
+    let spec = ConvSpec {
+        conv: w.pp("conv").pp(0),
+        cin: 384,
+        cout: WIDTH,
+        k: 3,
+        opts: ConvOpts::stride_pad(2, 1),
+        bias: false,
+        gain: 1.0,
+    };
     let x = conv_bn(g, &n("conv"), &x, &spec, &w.pp("conv").pp(1), 1000.0)?;
     let x = g.relu(&n("conv.relu"), &x)?;
     squeeze_excite(g, name, &x, &w.pp("se"), WIDTH)
 }
 
 /// SR on `x` ([1,cin,21,21]) guided by `t` ([1,192,11,11]): [1,192,11,11], named `name`.
-pub(crate) fn semantic_regulator(g: &mut Graph, w: &Scope, name: &str, x: &Value, cin: usize, t: &Value, act_scale: f32) -> Result<Value> {
+pub(crate) fn semantic_regulator(
+    g: &mut Graph,
+    w: &Scope,
+    name: &str,
+    x: &Value,
+    cin: usize,
+    t: &Value,
+    act_scale: f32,
+) -> Result<Value> {
     let n = |s: &str| format!("{name}.{s}");
     let t = upsample_nearest(g, &n("upsample"), t, 11, 21)?;
-    let spec = ConvSpec { conv: w.pp("conv1"), cin: WIDTH, cout: 1, k: 1, opts: ConvOpts::default(), bias: true, gain: 1.0 };
+    let spec =
+        ConvSpec { conv: w.pp("conv1"), cin: WIDTH, cout: 1, k: 1, opts: ConvOpts::default(), bias: true, gain: 1.0 };
     let t = conv(g, &n("conv1"), &t, &spec)?;
     let special = g.mul(&n("special"), x, &t)?;
     let x = g.add(&n("gated"), x, &special)?;
-    let spec = ConvSpec { conv: w.pp("conv2").pp(0), cin, cout: WIDTH, k: 3, opts: ConvOpts::stride_pad(2, 1), bias: false, gain: 1.0 };
+    let spec = ConvSpec {
+        conv: w.pp("conv2").pp(0),
+        cin,
+        cout: WIDTH,
+        k: 3,
+        opts: ConvOpts::stride_pad(2, 1),
+        bias: false,
+        gain: 1.0,
+    };
     let x = conv_bn(g, &n("conv2"), &x, &spec, &w.pp("conv2").pp(1), act_scale)?;
     let x = g.relu(&n("conv2.relu"), &x)?;
     squeeze_excite(g, name, &x, &w.pp("se"), WIDTH)
 }
-

@@ -49,7 +49,10 @@ pub struct Graph {
 
 fn value_info(name: &str, shape: &[usize]) -> pb::ValueInfoProto {
     use pb::tensor_shape_proto::{dimension, Dimension};
-    let dim = shape.iter().map(|&d| Dimension { value: Some(dimension::Value::DimValue(d as i64)), ..Default::default() }).collect();
+    let dim = shape
+        .iter()
+        .map(|&d| Dimension { value: Some(dimension::Value::DimValue(d as i64)), ..Default::default() })
+        .collect();
     let tensor = pb::type_proto::Tensor { elem_type: FLOAT, shape: Some(pb::TensorShapeProto { dim }) };
     pb::ValueInfoProto {
         name: name.to_string(),
@@ -61,7 +64,14 @@ fn value_info(name: &str, shape: &[usize]) -> pb::ValueInfoProto {
 impl Graph {
     /// An empty graph.
     pub fn new(name: impl Into<String>) -> Self {
-        Graph { name: name.into(), nodes: vec![], initializers: vec![], inputs: vec![], outputs: vec![], values: HashSet::new() }
+        Graph {
+            name: name.into(),
+            nodes: vec![],
+            initializers: vec![],
+            inputs: vec![],
+            outputs: vec![],
+            values: HashSet::new(),
+        }
     }
 
     /// The graph's name.

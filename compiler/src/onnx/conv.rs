@@ -49,7 +49,14 @@ impl Graph {
 
     /// Depthwise cross-correlation of `x` [1,C,H,W] with `kernel` [1,C,k,k] (a graph value, such
     /// as template features): each channel of `x` is correlated with the same channel of `kernel`.
-    pub fn depthwise_xcorr(&mut self, name: &str, x: &Value, kernel: &Value, channels: usize, k: usize) -> Result<Value> {
+    pub fn depthwise_xcorr(
+        &mut self,
+        name: &str,
+        x: &Value,
+        kernel: &Value,
+        channels: usize,
+        k: usize,
+    ) -> Result<Value> {
         let kernel = self.reshape(&format!("{name}.kernel"), kernel, &[channels as i64, 1, k as i64, k as i64])?;
         self.conv(name, x, &kernel, None, ConvOpts { group: channels, ..Default::default() })
     }

@@ -7,7 +7,12 @@ impl Graph {
     /// `MaxPool`, square kernel, no padding.
     pub fn max_pool(&mut self, name: &str, x: &Value, kernel: usize, stride: usize) -> Result<Value> {
         let (k, s) = (kernel as i64, stride as i64);
-        self.node("MaxPool", name, &[x], &[("kernel_shape", Attr::Ints(vec![k, k])), ("strides", Attr::Ints(vec![s, s]))])
+        self.node(
+            "MaxPool",
+            name,
+            &[x],
+            &[("kernel_shape", Attr::Ints(vec![k, k])), ("strides", Attr::Ints(vec![s, s]))],
+        )
     }
 
     /// `AveragePool` with padding counted in the divisor (PyTorch's default `count_include_pad`).
