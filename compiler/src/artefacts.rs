@@ -2,12 +2,17 @@
 
 use std::path::{Path, PathBuf};
 
+use prl_runtime::{GraphInfo, Preprocessing, TensorInfo, WeightsInfo};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::checkpoint::{hex, Checkpoint};
 use crate::net::{self, TensorSpec};
 use crate::{Error, Result, Weights};
+
+fn tensor_info(s: &TensorSpec) -> TensorInfo {
+    TensorInfo { name: s.name.into(), shape: s.shape.to_vec() }
+}
 
 /// Version of the model directory layout and manifest.
 pub const FORMAT_VERSION: u32 = 1;
@@ -31,61 +36,6 @@ impl WeightsSource {
     }
 }
 
-/// What `build` needs.
-#[derive(Debug, Clone)]
-pub struct BuildOptions {
-    /// The weights.
-    pub source: WeightsSource,
-    /// Output directory (created if needed).
-    pub out: PathBuf,
-}
-
-/// A named tensor in the manifest.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct TensorInfo {
-    /// Value name.
-    pub name: String,
-    /// Fixed shape.
-    pub shape: Vec<usize>,
-}
-
-impl From<&TensorSpec> for TensorInfo {
-    fn from(s: &TensorSpec) -> Self {
-        TensorInfo { name: s.name.into(), shape: s.shape.to_vec() }
-    }
-}
-
-/// One emitted graph.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct GraphInfo {
-    /// File name inside the model directory.
-    pub file: String,
-    /// SHA-256 of the file.
-    pub sha256: String,
-    /// Inputs, in order.
-    pub inputs: Vec<TensorInfo>,
-    /// Outputs, in order.
-    pub outputs: Vec<TensorInfo>,
-}
-
-/// Provenance of the weights.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct WeightsInfo {
-    /// `checkpoint` or `random`.
-    pub kind: String,
-    /// Checkpoint path as given.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub path: Option<String>,
-    /// Checkpoint SHA-256.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub sha256: Option<String>,
-    /// Random seed.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub seed: Option<u64>,
-    /// A plain statement for people reading the manifest.
-    pub note: String,
-}
-
 /// What a model directory holds (`manifest.json`).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct Manifest {
@@ -107,40 +57,25 @@ pub struct Manifest {
     pub preprocessing: Preprocessing,
 }
 
-/// The preprocessing contract of the graphs' image inputs.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct Preprocessing {
-    /// Channel order.
-    pub channels: String,
-    /// Value range.
-    pub range: String,
-    /// Normalisation applied before the network.
-    pub normalisation: String,
-    /// Tensor layout.
-    pub layout: String,
-    /// Template crop side.
-    pub template_size: usize,
-    /// Search crop side.
-    pub search_size: usize,
-    /// How crops are cut and resized.
-    pub crop: String,
-}
-
-/// What `build` did.
-#[derive(Debug)]
-pub struct BuildReport {
-    /// The manifest written.
+/// A built model in memory: the two ONNX graphs and their manifest.
+#[derive(Debug, Clone)]
+pub struct BuiltModel {
+    /// What `manifest.json` says.
     pub manifest: Manifest,
-    /// Where.
-    pub out: PathBuf,
+    /// `template.onnx` bytes.
+    pub template: Vec<u8>,
+    /// `search.onnx` bytes.
+    pub search: Vec<u8>,
     /// Checkpoint keys the network does not use.
     pub unused_keys: Vec<String>,
 }
 
-/// Build the network from `opts.source` and write `template.onnx`, `search.onnx` and
-/// `manifest.json` into `opts.out`. Files are written to temporaries and renamed at the end.
-pub fn build(opts: &BuildOptions) -> Result<BuildReport> {
-    let weights = opts.source.load()?;
+/// File name of a model directory's manifest.
+pub const MODEL_MANIFEST: &str = "manifest.json";
+
+/// Build the network from `source` into ONNX graphs and their manifest.
+pub fn build_model(source: &WeightsSource) -> Result<BuiltModel> {
+    let weights = source.load()?;
     let network = net::build_network(&weights)?;
     let weights_info = match (weights.checkpoint(), weights.seed()) {
         (Some(c), _) => WeightsInfo {
@@ -173,29 +108,76 @@ pub fn build(opts: &BuildOptions) -> Result<BuildReport> {
         tool: format!("prl-compiler {}", env!("CARGO_PKG_VERSION")),
         opset: crate::onnx::OPSET,
         weights: weights_info,
-        template: info("template.onnx", &template, vec![(&net::TEMPLATE_INPUT).into()], net::TEMPLATE_FEATURES.iter().map(Into::into).collect()),
+        template: info(
+            "template.onnx",
+            &template,
+            vec![tensor_info(&net::TEMPLATE_INPUT)],
+            net::TEMPLATE_FEATURES.iter().map(tensor_info).collect(),
+        ),
         search: info(
             "search.onnx",
             &search,
-            std::iter::once(&net::SEARCH_INPUT).chain(&net::TEMPLATE_FEATURES).map(Into::into).collect(),
-            net::SEARCH_OUTPUTS.iter().map(Into::into).collect(),
+            std::iter::once(&net::SEARCH_INPUT).chain(&net::TEMPLATE_FEATURES).map(tensor_info).collect(),
+            net::SEARCH_OUTPUTS.iter().map(tensor_info).collect(),
         ),
-        preprocessing: Preprocessing {
-            channels: "BGR".into(),
-            range: "0..255 (float32 of uint8 pixels)".into(),
-            normalisation: "none".into(),
-            layout: "NCHW, batch 1".into(),
-            template_size: net::TEMPLATE_SIZE,
-            search_size: net::SEARCH_SIZE,
-            crop: "official get_subwindow: square crop around the target, padded with the first frame's per-channel mean, resized with OpenCV INTER_LINEAR on uint8".into(),
-        },
+        preprocessing: preprocessing(),
     };
-    let json = serde_json::to_vec_pretty(&manifest).map_err(|e| Error::Other(e.to_string()))?;
-    write_all_atomically(
-        &opts.out,
-        &[("template.onnx", &template), ("search.onnx", &search), ("manifest.json", &json)],
-    )?;
-    Ok(BuildReport { manifest, out: opts.out.clone(), unused_keys: weights.unused_keys() })
+    Ok(BuiltModel { manifest, template, search, unused_keys: weights.unused_keys() })
+}
+
+/// The graphs' input contract.
+pub fn preprocessing() -> Preprocessing {
+    Preprocessing {
+        channels: "BGR".into(),
+        range: "0..255 (float32 of uint8 pixels)".into(),
+        normalisation: "none".into(),
+        layout: "NCHW, batch 1".into(),
+        template_size: net::TEMPLATE_SIZE,
+        search_size: net::SEARCH_SIZE,
+        crop: "official get_subwindow: square crop around the target, padded with the first frame's per-channel \
+               mean, resized with OpenCV INTER_LINEAR on uint8"
+            .into(),
+    }
+}
+
+impl BuiltModel {
+    /// Write `template.onnx`, `search.onnx` and `manifest.json` into `dir` (atomically).
+    pub fn write(&self, dir: &Path) -> Result<()> {
+        let json = serde_json::to_vec_pretty(&self.manifest).map_err(|e| Error::Other(e.to_string()))?;
+        write_all_atomically(
+            dir,
+            &[
+                (&self.manifest.template.file, &self.template),
+                (&self.manifest.search.file, &self.search),
+                (MODEL_MANIFEST, &json),
+            ],
+        )
+    }
+
+    /// Read a model directory written by [`BuiltModel::write`], checking each graph's SHA-256.
+    pub fn read(dir: &Path) -> Result<BuiltModel> {
+        let mpath = dir.join(MODEL_MANIFEST);
+        let bytes = std::fs::read(&mpath).map_err(|e| Error::io(&mpath, e))?;
+        let manifest: Manifest =
+            serde_json::from_slice(&bytes).map_err(|e| Error::format(&mpath, format!("not a model manifest: {e}")))?;
+        if manifest.format_version != FORMAT_VERSION {
+            return Err(Error::format(
+                &mpath,
+                format!("model format {}, expected {FORMAT_VERSION}", manifest.format_version),
+            ));
+        }
+        let read = |g: &GraphInfo| -> Result<Vec<u8>> {
+            let p = dir.join(&g.file);
+            let b = std::fs::read(&p).map_err(|e| Error::io(&p, e))?;
+            let digest = hex(&Sha256::digest(&b));
+            if digest != g.sha256 {
+                return Err(Error::format(&p, format!("sha256 {digest} does not match the manifest's {}", g.sha256)));
+            }
+            Ok(b)
+        };
+        let (template, search) = (read(&manifest.template)?, read(&manifest.search)?);
+        Ok(BuiltModel { manifest, template, search, unused_keys: vec![] })
+    }
 }
 
 /// Write every file to a temporary beside it, then rename them all: a failure leaves no

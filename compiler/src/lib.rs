@@ -5,8 +5,9 @@
 //!
 //! Layout: [`checkpoint`] reads weights without Python; [`Weights`] looks them up by scoped
 //! prefix so names equal checkpoint keys; [`onnx`] is a generic graph builder; [`net`] is the
-//! network; [`OnnxRunner`] runs a graph with tract; [`build`] writes model directories and
-//! [`verify`] compares every stage with golden tensors.
+//! network; [`OnnxRunner`] runs a graph with tract; [`build_model`] makes model directories,
+//! [`compile`] turns them into plans for `prl-runtime`, and [`verify`] compares every stage with
+//! golden tensors.
 
 mod artefacts;
 pub mod checkpoint;
@@ -14,13 +15,15 @@ mod engine;
 mod error;
 pub mod net;
 pub mod onnx;
+mod plan;
 mod tensor;
 mod verify;
 mod weights;
 
-pub use artefacts::{build, BuildOptions, BuildReport, Manifest, WeightsSource};
+pub use artefacts::{build_model, preprocessing, BuiltModel, Manifest, WeightsSource, MODEL_MANIFEST};
 pub use engine::OnnxRunner;
 pub use error::{Error, Result};
+pub use plan::{compile, CompiledPlan, TRACT_VERSION};
 pub use tensor::{relative_error, Tensor};
 pub use verify::{read_golden, verify, StageReport, VerifyReport};
 pub use weights::{Init, Scope, Weights};

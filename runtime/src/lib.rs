@@ -1,50 +1,38 @@
-//! `prl-runtime`: the slim part of the PRL-Track toolchain that ships on the camera. It will load
-//! compiled plans and run the tracker exactly as the official tracker does, without tract-onnx,
-//! protobuf or a command-line parser in its dependency tree.
+//! `prl-runtime`: the slim part of the PRL-Track toolchain that ships on the camera. It loads a
+//! compiled plan (decluttered NNEF graphs plus a manifest, optimised by tract when loaded), cuts
+//! and resizes crops exactly as the official tracker does, and runs the official PRL-Track
+//! tracking loop. Its dependency tree holds no tract-onnx, no protobuf and no command-line parser.
 //!
-//! For now it holds the tracker's settings as the official `experiments/config.yaml` gives them;
-//! plans and the tracking loop come with the next milestone.
+//! ```no_run
+//! # fn main() -> Result<(), prl_runtime::Error> {
+//! use prl_runtime::{Frame, Plan, Tracker, BBox};
+//! let plan = Plan::load("models/prl-track/plan")?;
+//! let config = plan.manifest().tracker.clone();
+//! let mut tracker = Tracker::new(plan, config);
+//! let first = Frame::from_rgb_image(&image::open("000001.png").unwrap().to_rgb8());
+//! tracker.init(&first, BBox { x: 110.0, y: 108.0, w: 36.0, h: 24.0 })?;
+//! let next = Frame::from_rgb_image(&image::open("000002.png").unwrap().to_rgb8());
+//! let prediction = tracker.track(&next)?;
+//! println!("{:?} {}", prediction.bbox, prediction.score);
+//! # Ok(()) }
+//! ```
 
-/// Tracker hyper-parameters of the official PRL-Track configuration.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TrackerConfig {
-    /// Template crop side (`EXEMPLAR_SIZE`).
-    pub exemplar_size: usize,
-    /// Search crop side (`INSTANCE_SIZE`).
-    pub instance_size: usize,
-    /// Context added around the target (`CONTEXT_AMOUNT`).
-    pub context_amount: f64,
-    /// Scale/aspect change penalty (`PENALTY_K`).
-    pub penalty_k: f64,
-    /// Weight of the cosine window (`WINDOW_INFLUENCE`).
-    pub window_influence: f64,
-    /// Size update rate (`LR`).
-    pub lr: f64,
-    /// Weight of the `cls1` score (`w2`).
-    pub w2: f64,
-    /// Weight of the `cls2` score (`w3`).
-    pub w3: f64,
-    /// Output stride of the score map in crop pixels.
-    pub stride: usize,
-    /// Score map side.
-    pub score_size: usize,
-}
+mod config;
+mod crop;
+mod error;
+mod frame;
+mod manifest;
+mod plan;
+mod resize;
+mod tracker;
 
-impl Default for TrackerConfig {
-    /// The official settings (`experiments/config.yaml`).
-    fn default() -> Self {
-        TrackerConfig {
-            exemplar_size: 127,
-            instance_size: 287,
-            context_amount: 0.5,
-            penalty_k: 0.08,
-            window_influence: 0.42,
-            lr: 0.30,
-            w2: 1.0,
-            w3: 1.0,
-            stride: 16,
-            score_size: 11,
-        }
-    }
-}
+pub use config::TrackerConfig;
+pub use crop::{crop_to_tensor, get_subwindow};
+pub use error::{Error, Result};
+pub use frame::{Frame, PixelLayout};
+pub use manifest::{
+    GraphInfo, PlanManifest, Preprocessing, TensorInfo, WeightsInfo, PLAN_FORMAT_VERSION, PLAN_MANIFEST,
+};
+pub use plan::{nnef, set_threads, Plan, SearchOutput, TemplateFeatures};
+pub use resize::resize_linear_u8;
+pub use tracker::{BBox, Prediction, StepTimings, Tracker};

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use prl_compiler::{build, BuildOptions, WeightsSource};
+use prl_compiler::{build_model, WeightsSource};
 
 use super::{spinner, WeightsArgs};
 
@@ -25,17 +25,11 @@ pub struct BuildArgs {
 pub fn run(a: BuildArgs) -> anyhow::Result<()> {
     let source = a.weights.source_or(default_source);
     let pb = spinner(&format!("building PRL-Track from {}", describe(&source)));
-    let report = build(&BuildOptions { source, out: a.out });
+    let report = build_model(&source).and_then(|m| m.write(&a.out).map(|_| m));
     pb.finish_and_clear();
     let report = report?;
     let m = &report.manifest;
-    println!(
-        "wrote {} ({}), {} and manifest.json to {}",
-        m.template.file,
-        short(&m.template.sha256),
-        m.search.file,
-        report.out.display()
-    );
+    println!("wrote {}, {} and manifest.json to {}", m.template.file, m.search.file, a.out.display());
     println!(
         "weights: {}{}",
         m.weights.note,
@@ -64,7 +58,7 @@ pub fn default_source() -> WeightsSource {
     }
 }
 
-fn describe(s: &WeightsSource) -> String {
+pub fn describe(s: &WeightsSource) -> String {
     match s {
         WeightsSource::Checkpoint(p) => p.display().to_string(),
         WeightsSource::Random(seed) => format!("random weights (seed {seed})"),

@@ -1,6 +1,9 @@
 //! Command-line parsing and dispatch.
 
 mod build;
+mod compile;
+mod demo;
+mod track;
 mod verify;
 
 use std::path::PathBuf;
@@ -9,11 +12,7 @@ use clap::{Args, Parser, Subcommand};
 
 /// The PRL-Track deployment toolchain.
 #[derive(Parser)]
-#[command(
-    name = "prl",
-    version,
-    about = "PRL-Track toolchain: build the network as ONNX, verify it against the official implementation"
-)]
+#[command(name = "prl", version, about = "PRL-Track toolchain: build the network, verify it, compile plans, track")]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -25,6 +24,12 @@ enum Command {
     Build(build::BuildArgs),
     /// Run every stage with tract on golden tensors and compare with the official outputs.
     Verify(verify::VerifyArgs),
+    /// Compile a model (or a checkpoint, or random weights) into a plan for the runtime.
+    Compile(compile::CompileArgs),
+    /// Track a target through a frame sequence with a plan.
+    Track(track::TrackArgs),
+    /// Show the whole pipeline working with no input: seeded network, plan, generated video.
+    Demo(demo::DemoArgs),
 }
 
 /// Where the weights come from: a checkpoint, or seeded random weights.
@@ -55,6 +60,9 @@ pub fn run() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Build(a) => build::run(a),
         Command::Verify(a) => verify::run(a),
+        Command::Compile(a) => compile::run(a),
+        Command::Track(a) => track::run(a),
+        Command::Demo(a) => demo::run(a),
     }
 }
 
@@ -65,4 +73,17 @@ pub fn spinner(msg: &str) -> indicatif::ProgressBar {
     pb.enable_steady_tick(std::time::Duration::from_millis(120));
     pb.set_message(msg.to_string());
     pb
+}
+
+/// Write `bytes` to `path` through a temporary file in the same folder and a rename.
+pub fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+    let name = path.file_name().with_context(|| format!("{}: not a file path", path.display()))?;
+    let tmp = dir.join(format!(".{}.tmp-{}", name.to_string_lossy(), std::process::id()));
+    std::fs::write(&tmp, bytes).with_context(|| format!("{}: cannot write", path.display()))?;
+    std::fs::rename(&tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        anyhow::anyhow!("{}: cannot write: {e}", path.display())
+    })
 }

@@ -126,3 +126,17 @@ pub fn torch_zip(pkl: Option<&[u8]>, storages: &[(&str, Vec<u8>)]) -> Vec<u8> {
 pub fn f32_bytes(v: &[f32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
+
+/// A plan compiled from the reference checkpoint, once per test process (kept for its lifetime).
+pub fn reference_plan() -> PathBuf {
+    static PLAN: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    PLAN.get_or_init(|| {
+        let source = prl_compiler::WeightsSource::Checkpoint(golden_dir().join("checkpoint.pth"));
+        let model = prl_compiler::build_model(&source).expect("build");
+        let plan = prl_compiler::compile(&model, &prl_runtime::TrackerConfig::default()).expect("compile");
+        let dir = tempfile::tempdir().expect("tempdir").keep();
+        plan.write(&dir).expect("write plan");
+        dir
+    })
+    .clone()
+}

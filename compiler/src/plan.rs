@@ -1,0 +1,83 @@
+//! `prl compile`: load each ONNX graph with tract, fix its input facts, declutter it, and save
+//! it as NNEF (`.nnef.tgz`) beside a plan manifest. tract cannot serialise optimised models, so a
+//! plan holds decluttered graphs and the runtime optimises them when it loads them.
+
+use std::io::Write;
+use std::path::Path;
+
+use flate2::{write::GzEncoder, Compression};
+use prl_runtime::{GraphInfo, PlanManifest, TrackerConfig, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
+use sha2::{Digest, Sha256};
+use tract_onnx::prelude::{self as tp, Framework, InferenceFact, InferenceModelExt};
+
+use crate::artefacts::write_all_atomically;
+use crate::checkpoint::hex;
+use crate::{BuiltModel, Error, Result};
+
+/// The tract release plans are written with (pinned in Cargo.toml).
+pub const TRACT_VERSION: &str = "0.23.9";
+
+/// A compiled plan in memory.
+#[derive(Debug, Clone)]
+pub struct CompiledPlan {
+    /// What `plan.json` says.
+    pub manifest: PlanManifest,
+    /// `template.nnef.tgz` bytes.
+    pub template: Vec<u8>,
+    /// `search.nnef.tgz` bytes.
+    pub search: Vec<u8>,
+}
+
+/// Compile a built model into a plan (fp32) carrying the tracker settings `tracker`.
+pub fn compile(model: &BuiltModel, tracker: &TrackerConfig) -> Result<CompiledPlan> {
+    let template = to_nnef(&model.template, &model.manifest.template, "template graph")?;
+    let search = to_nnef(&model.search, &model.manifest.search, "search graph")?;
+    let info = |g: &GraphInfo, file: &str, bytes: &[u8]| GraphInfo {
+        file: file.into(),
+        sha256: hex(&Sha256::digest(bytes)),
+        ..g.clone()
+    };
+    let manifest = PlanManifest {
+        format_version: PLAN_FORMAT_VERSION,
+        model: model.manifest.model.clone(),
+        precision: "fp32".into(),
+        tool: format!("prl-compiler {}", env!("CARGO_PKG_VERSION")),
+        tract_version: TRACT_VERSION.into(),
+        weights: model.manifest.weights.clone(),
+        template: info(&model.manifest.template, "template.nnef.tgz", &template),
+        search: info(&model.manifest.search, "search.nnef.tgz", &search),
+        preprocessing: model.manifest.preprocessing.clone(),
+        tracker: tracker.clone(),
+    };
+    Ok(CompiledPlan { manifest, template, search })
+}
+
+impl CompiledPlan {
+    /// Write the plan directory `dir` (atomically, file by file).
+    pub fn write(&self, dir: &Path) -> Result<()> {
+        let json = serde_json::to_vec_pretty(&self.manifest).map_err(|e| Error::Other(e.to_string()))?;
+        write_all_atomically(
+            dir,
+            &[
+                (&self.manifest.template.file, &self.template),
+                (&self.manifest.search.file, &self.search),
+                (PLAN_MANIFEST, &json),
+            ],
+        )
+    }
+}
+
+/// Decluttered NNEF of one ONNX graph, gzipped.
+fn to_nnef(onnx: &[u8], info: &GraphInfo, context: &str) -> Result<Vec<u8>> {
+    let err = |e: tp::TractError| Error::tract(context, format!("{e:#}").replace('\n', " "));
+    let mut model = tract_onnx::onnx().model_for_read(&mut &*onnx).map_err(err)?;
+    for (i, t) in info.inputs.iter().enumerate() {
+        model.set_input_fact(i, InferenceFact::dt_shape(f32::datum_type(), &t.shape)).map_err(err)?;
+    }
+    let model = model.into_typed().and_then(|m| m.into_decluttered()).map_err(err)?;
+    let mut gz = GzEncoder::new(Vec::new(), Compression::fast());
+    prl_runtime::nnef().write_to_tar(&model, &mut gz).map_err(err)?;
+    gz.flush().and_then(|_| gz.finish()).map_err(|e| Error::Other(format!("{context}: compressing: {e}")))
+}
+
+use tract_onnx::prelude::Datum as _;

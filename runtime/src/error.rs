@@ -1,0 +1,23 @@
+//! The runtime's error type.
+
+use std::path::PathBuf;
+
+/// What can go wrong when loading a plan or tracking.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A file could not be read.
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    /// The plan is malformed, corrupt, or not one this runtime can run.
+    #[error("{path}: {msg}")]
+    Plan { path: PathBuf, msg: String },
+    /// tract failed while running a graph.
+    #[error("{graph} graph: {msg}")]
+    Run { graph: &'static str, msg: String },
+    /// A frame or box handed to the tracker is unusable.
+    #[error("{0}")]
+    Input(String),
+}
+
+/// The runtime's result type.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

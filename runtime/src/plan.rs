@@ -1,0 +1,149 @@
+//! Compiled plans: a directory with `plan.json` and the template and search graphs as
+//! decluttered NNEF, checked against the manifest's hashes and optimised when loaded.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use sha2::{Digest, Sha256};
+use tract_nnef::prelude::*;
+
+use crate::{Error, PlanManifest, Result, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
+
+type Runnable = Arc<TypedSimplePlan>;
+
+/// A loaded, optimised plan.
+pub struct Plan {
+    dir: PathBuf,
+    manifest: PlanManifest,
+    template: Runnable,
+    search: Runnable,
+}
+
+/// The template graph's outputs for one target (`zf1..zf5`), kept as tract values.
+#[derive(Clone)]
+pub struct TemplateFeatures(TVec<TValue>);
+
+/// The search graph's outputs, flattened row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SearchOutput {
+    /// [4, 11, 11] box regression.
+    pub loc: Vec<f32>,
+    /// [2, 11, 11] classification logits.
+    pub cls1: Vec<f32>,
+    /// [1, 11, 11] quality logit.
+    pub cls2: Vec<f32>,
+}
+
+/// The NNEF framework plans are written and read with: tract's own operators plus the `prl`
+/// registry, which names the fused exact GELU that tract's declutter pass produces (tract has no
+/// NNEF serialiser of its own for it).
+pub fn nnef() -> tract_nnef::internal::Nnef {
+    let mut prl = tract_nnef::internal::Registry::new("prl");
+    prl.register_unit_element_wise("prl_gelu_exact", &tract_nnef::tract_core::ops::nn::GeluExact {});
+    tract_nnef::nnef().with_registry(prl)
+}
+
+/// Use `n` threads for tract's matrix products (1: single-threaded). Applies process-wide.
+pub fn set_threads(n: usize) {
+    use tract_linalg::multithread::{set_default_executor, Executor};
+    set_default_executor(if n > 1 { Executor::multithread(n) } else { Executor::SingleThread });
+}
+
+impl Plan {
+    /// Load the plan in directory `dir`: read `plan.json`, check the format and each graph's
+    /// SHA-256, load the NNEF graphs and optimise them.
+    pub fn load(dir: impl AsRef<Path>) -> Result<Plan> {
+        let dir = dir.as_ref().to_path_buf();
+        let mpath = dir.join(PLAN_MANIFEST);
+        let bytes = std::fs::read(&mpath).map_err(|e| Error::Io { path: mpath.clone(), source: e })?;
+        let bad = |path: &Path, msg: String| Error::Plan { path: path.to_path_buf(), msg };
+        let manifest: PlanManifest =
+            serde_json::from_slice(&bytes).map_err(|e| bad(&mpath, format!("not a plan manifest: {e}")))?;
+        if manifest.format_version != PLAN_FORMAT_VERSION || manifest.model != "prl-track" {
+            return Err(bad(
+                &mpath,
+                format!(
+                    "plan format {} of model `{}`; this runtime reads format {PLAN_FORMAT_VERSION} of `prl-track`",
+                    manifest.format_version, manifest.model
+                ),
+            ));
+        }
+        let template = load_graph(&dir, &manifest.template)?;
+        let search = load_graph(&dir, &manifest.search)?;
+        Ok(Plan { dir, manifest, template, search })
+    }
+
+    /// The plan's manifest.
+    pub fn manifest(&self) -> &PlanManifest {
+        &self.manifest
+    }
+
+    /// The directory the plan was loaded from.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// Run the template graph on a float NCHW BGR crop (`[1,3,127,127]`, row-major).
+    pub fn template(&self, z: &[f32]) -> Result<TemplateFeatures> {
+        let input = tensor("template", &self.manifest.template.inputs[0].shape, z)?;
+        let outs = self.template.run(tvec![input.into()]).map_err(|e| run_err("template", e))?;
+        Ok(TemplateFeatures(outs))
+    }
+
+    /// Run the search graph on a float NCHW BGR crop (`[1,3,287,287]`) with a target's features.
+    pub fn search(&self, x: &[f32], zf: &TemplateFeatures) -> Result<SearchOutput> {
+        let input = tensor("search", &self.manifest.search.inputs[0].shape, x)?;
+        let mut inputs: TVec<TValue> = tvec![input.into()];
+        inputs.extend(zf.0.iter().cloned());
+        let outs = self.search.run(inputs).map_err(|e| run_err("search", e))?;
+        let flat = |i: usize| -> Result<Vec<f32>> {
+            let v = outs[i].try_as_plain_ram().and_then(|v| v.as_slice::<f32>().map(<[f32]>::to_vec));
+            v.map_err(|e| run_err("search", e))
+        };
+        Ok(SearchOutput { loc: flat(0)?, cls1: flat(1)?, cls2: flat(2)? })
+    }
+}
+
+fn tensor(graph: &'static str, shape: &[usize], data: &[f32]) -> Result<Tensor> {
+    Tensor::from_shape(shape, data)
+        .map_err(|e| Error::Run { graph, msg: format!("input of {} values for shape {shape:?}: {e}", data.len()) })
+}
+
+fn run_err(graph: &'static str, e: TractError) -> Error {
+    Error::Run { graph, msg: format!("{e:#}").replace('\n', " ") }
+}
+
+fn load_graph(dir: &Path, info: &crate::GraphInfo) -> Result<Runnable> {
+    let path = dir.join(&info.file);
+    let bytes = std::fs::read(&path).map_err(|e| Error::Io { path: path.clone(), source: e })?;
+    let bad = |msg: String| Error::Plan { path: path.clone(), msg };
+    let digest: String = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+    if digest != info.sha256 {
+        return Err(bad(format!(
+            "sha256 {digest} does not match the manifest's {} (corrupt or replaced file)",
+            info.sha256
+        )));
+    }
+    let tract_err = |e: TractError| bad(format!("{e:#}").replace('\n', " "));
+    let model = nnef().model_for_read(&mut &*bytes).map_err(tract_err)?;
+    if model.inputs.len() != info.inputs.len() || model.outputs.len() != info.outputs.len() {
+        return Err(bad(format!(
+            "graph has {} inputs and {} outputs, the manifest says {} and {}",
+            model.inputs.len(),
+            model.outputs.len(),
+            info.inputs.len(),
+            info.outputs.len()
+        )));
+    }
+    for (i, t) in info.inputs.iter().enumerate() {
+        let fact = model.input_fact(i).map_err(tract_err)?;
+        if fact.shape.as_concrete() != Some(&t.shape[..]) {
+            return Err(bad(format!(
+                "input `{}` has shape {:?} in the graph, {:?} in the manifest",
+                t.name, fact.shape, t.shape
+            )));
+        }
+    }
+    let model = model.into_optimized().map_err(tract_err)?;
+    TypedSimplePlan::new(model).map_err(tract_err)
+}

@@ -1,0 +1,288 @@
+//! The official PRL-Track tracking loop (`PRLTrack` with `experiments/config.yaml`), to the
+//! number: crops, decoding of the 11x11 grid, scale/aspect penalties, cosine window, smoothing.
+
+use std::time::{Duration, Instant};
+
+use crate::{crop_to_tensor, get_subwindow, Error, Frame, Plan, Result, TemplateFeatures, TrackerConfig};
+
+/// An axis-aligned box: top-left corner and size, 0-based float pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BBox {
+    /// Left edge.
+    pub x: f64,
+    /// Top edge.
+    pub y: f64,
+    /// Width.
+    pub w: f64,
+    /// Height.
+    pub h: f64,
+}
+
+/// What the tracker says about a frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Prediction {
+    /// The target's box.
+    pub bbox: BBox,
+    /// The score of the chosen cell (`best_score` of the official tracker; not a probability).
+    pub score: f64,
+}
+
+struct State {
+    center: (f64, f64),
+    size: (f64, f64),
+    channel_average: [f64; 3],
+    /// `s_z` of the template crop (rounded), reused when the target covers over half the frame.
+    init_sz: f64,
+    features: TemplateFeatures,
+}
+
+/// Where the time of the last `init` or `track` call went.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepTimings {
+    /// Cutting and resizing the crop, to the network's input tensor.
+    pub crop: Duration,
+    /// Running the template or search graph.
+    pub network: Duration,
+    /// Decoding, penalties, window and state update.
+    pub post: Duration,
+}
+
+/// A single-target tracker running a [`Plan`].
+pub struct Tracker {
+    plan: Plan,
+    config: TrackerConfig,
+    window: Vec<f64>,
+    state: Option<State>,
+    timings: StepTimings,
+}
+
+/// Python's `min(a, b)`: `a` unless `b < a` (so a NaN `a` stays, a NaN `b` is ignored).
+fn py_min(a: f64, b: f64) -> f64 {
+    if b < a {
+        b
+    } else {
+        a
+    }
+}
+
+/// Python's `max(a, b)`: `a` unless `b > a`.
+fn py_max(a: f64, b: f64) -> f64 {
+    if b > a {
+        b
+    } else {
+        a
+    }
+}
+
+/// `np.hanning(n)`.
+fn hanning(n: usize) -> Vec<f64> {
+    if n == 1 {
+        return vec![1.0];
+    }
+    (0..n).map(|i| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * i as f64 / (n - 1) as f64).cos()).collect()
+}
+
+/// `np.argmax`: the first NaN if there is one, else the first maximum.
+fn argmax(v: &[f64]) -> usize {
+    if let Some(i) = v.iter().position(|x| x.is_nan()) {
+        return i;
+    }
+    let mut best = 0;
+    for (i, &x) in v.iter().enumerate() {
+        if x > v[best] {
+            best = i;
+        }
+    }
+    best
+}
+
+fn round_half_even(v: f64) -> f64 {
+    v.round_ties_even()
+}
+
+impl Tracker {
+    /// A tracker running `plan` with `config` (usually `plan.manifest().tracker`).
+    pub fn new(plan: Plan, config: TrackerConfig) -> Self {
+        let h = hanning(config.score_size);
+        let window = h.iter().flat_map(|a| h.iter().map(move |b| a * b)).collect();
+        Tracker { plan, config, window, state: None, timings: StepTimings::default() }
+    }
+
+    /// Where the time of the last `init` or `track` went.
+    pub fn last_timings(&self) -> StepTimings {
+        self.timings
+    }
+
+    /// The plan being run.
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    fn context_size(&self, size: (f64, f64)) -> f64 {
+        let ctx = self.config.context_amount * (size.0 + size.1);
+        ((size.0 + ctx) * (size.1 + ctx)).sqrt()
+    }
+
+    /// Start tracking the target in `bbox` (x, y, w, h) on `frame`.
+    pub fn init(&mut self, frame: &Frame, bbox: BBox) -> Result<()> {
+        let ok = |v: f64| v.is_finite();
+        if !(ok(bbox.x) && ok(bbox.y) && ok(bbox.w) && ok(bbox.h)) || bbox.w <= 0.0 || bbox.h <= 0.0 {
+            return Err(Error::Input(format!("init box {bbox:?} must have a finite position and a positive size")));
+        }
+        let (fw, fh) = (frame.width() as f64, frame.height() as f64);
+        if bbox.x + bbox.w <= 0.0 || bbox.y + bbox.h <= 0.0 || bbox.x >= fw || bbox.y >= fh {
+            return Err(Error::Input(format!("init box {bbox:?} lies outside the {fw}x{fh} frame")));
+        }
+        let center = (bbox.x + (bbox.w - 1.0) / 2.0, bbox.y + (bbox.h - 1.0) / 2.0);
+        let size = (bbox.w, bbox.h);
+        let s_z = round_half_even(self.context_size(size));
+        let t0 = Instant::now();
+        let channel_average = frame.channel_mean();
+        let side = self.config.exemplar_size;
+        let z = crop_to_tensor(&get_subwindow(frame, center, side, s_z as usize, channel_average), side);
+        let t1 = Instant::now();
+        let features = self.plan.template(&z)?;
+        self.timings = StepTimings { crop: t1 - t0, network: t1.elapsed(), post: Duration::ZERO };
+        self.state = Some(State { center, size, channel_average, init_sz: s_z, features });
+        Ok(())
+    }
+
+    /// Locate the target in the next frame.
+    pub fn track(&mut self, frame: &Frame) -> Result<Prediction> {
+        let cfg = &self.config;
+        let st = self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))?;
+        let (fw, fh) = (frame.width() as f64, frame.height() as f64);
+        let mut s_z = self.context_size(st.size);
+        if st.size.0 * st.size.1 > 0.5 * fw * fh {
+            s_z = st.init_sz;
+        }
+        let scale_z = cfg.exemplar_size as f64 / s_z;
+        let s_x = s_z * (cfg.instance_size as f64 / cfg.exemplar_size as f64);
+        let side = cfg.instance_size;
+        let t0 = Instant::now();
+        let x = crop_to_tensor(
+            &get_subwindow(frame, st.center, side, round_half_even(s_x) as usize, st.channel_average),
+            side,
+        );
+        let t1 = Instant::now();
+        let out = self.plan.search(&x, &st.features)?;
+        let t2 = Instant::now();
+        let (pred, score) = decode(cfg, &out.loc, &out.cls1, &out.cls2);
+
+        let change = |r: f64| r.max(1.0 / (r + 1e-5));
+        let sz = |w: f64, h: f64| {
+            let pad = (w + h) * 0.5;
+            ((w + pad) * (h + pad)).sqrt()
+        };
+        let (tw, th) = (st.size.0 * scale_z, st.size.1 * scale_z);
+        let n = pred.len();
+        let mut penalty = Vec::with_capacity(n);
+        let mut pscore = Vec::with_capacity(n);
+        for i in 0..n {
+            let [_, _, pw, ph] = pred[i];
+            let s_c = change_np(sz(pw, ph) / sz(tw, th), change);
+            let r_c = change_np((st.size.0 / (st.size.1 + 1e-5)) / (pw / (ph + 1e-5)), change);
+            let p = (-(r_c * s_c - 1.0) * cfg.penalty_k).exp();
+            penalty.push(p);
+            pscore.push(p * score[i] * (1.0 - cfg.window_influence) + self.window[i] * cfg.window_influence);
+        }
+        let best = argmax(&pscore);
+        let b = pred[best].map(|v| v / scale_z);
+        let lr = penalty[best] * score[best] * cfg.lr;
+        let cx = b[0] + st.center.0;
+        let cy = b[1] + st.center.1;
+        let width = st.size.0 * (1.0 - lr) + b[2] * lr;
+        let height = st.size.1 * (1.0 - lr) + b[3] * lr;
+        let cx = py_max(0.0, py_min(cx, fw));
+        let cy = py_max(0.0, py_min(cy, fh));
+        let width = py_max(10.0, py_min(width, fw));
+        let height = py_max(10.0, py_min(height, fh));
+        let st = self.state.as_mut().expect("initialised");
+        st.center = (cx, cy);
+        st.size = (width, height);
+        self.timings = StepTimings { crop: t1 - t0, network: t2 - t1, post: t2.elapsed() };
+        Ok(Prediction {
+            bbox: BBox { x: cx - width / 2.0, y: cy - height / 2.0, w: width, h: height },
+            score: score[best],
+        })
+    }
+}
+
+/// `np.maximum(r, 1/(r+1e-5))`: NaN propagates.
+fn change_np(r: f64, change: impl Fn(f64) -> f64) -> f64 {
+    if r.is_nan() {
+        f64::NAN
+    } else {
+        let other = 1.0 / (r + 1e-5);
+        if other.is_nan() {
+            f64::NAN
+        } else {
+            change(r)
+        }
+    }
+}
+
+/// Boxes `[cx, cy, w, h]` in search-crop pixels relative to the crop centre, and scores, per cell
+/// (row-major over the score map), exactly as `generate_anchor` and the score lines compute them.
+pub(crate) fn decode(cfg: &TrackerConfig, loc: &[f32], cls1: &[f32], cls2: &[f32]) -> (Vec<[f64; 4]>, Vec<f64>) {
+    let n = cfg.score_size;
+    let cells = n * n;
+    let half = (cfg.instance_size / 2) as f64;
+    // dcon: values <= -1 become -0.99, >= 1 become 0.99 (others, even beyond ±0.99, stay); atanh
+    // in float32 as numpy computes it on the float32 map.
+    let dcon = |v: f32| -> f32 {
+        let v = if v <= -1.0 {
+            -0.99f32
+        } else if v >= 1.0 {
+            0.99f32
+        } else {
+            v
+        };
+        ((1.0 + v).ln() - (1.0 - v).ln()) / 2.0 * 143.0
+    };
+    let mut pred = Vec::with_capacity(cells);
+    let mut score = Vec::with_capacity(cells);
+    for i in 0..cells {
+        let (row, col) = (i / n, i % n);
+        let ax = (cfg.stride * col) as f64 + 63.0 - half;
+        let ay = (cfg.stride * row) as f64 + 63.0 - half;
+        // Sizes are float32 sums, as numpy adds the float32 map.
+        let d: [f32; 4] = std::array::from_fn(|k| dcon(loc[k * cells + i]));
+        let (w, h) = ((d[0] + d[1]) as f64, (d[2] + d[3]) as f64);
+        let (wh, hh) = (((d[0] + d[1]) / 2.0) as f64, ((d[2] + d[3]) / 2.0) as f64);
+        pred.push([ax - d[0] as f64 + wh, ay - d[2] as f64 + hh, w, h]);
+        // Scores in float32 too: softmax(cls1)[1] * w2 plus the raw cls2 logit * w3, halved.
+        let (c0, c1) = (cls1[i], cls1[cells + i]);
+        let m = c0.max(c1);
+        let (e0, e1) = ((c0 - m).exp(), (c1 - m).exp());
+        let s1 = e1 / (e0 + e1);
+        score.push(((s1 * cfg.w2 as f32 + cls2[i] * cfg.w3 as f32) / 2.0) as f64);
+    }
+    (pred, score)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn numpy_semantics() {
+        assert_eq!(argmax(&[1.0, 3.0, 3.0, 2.0]), 1);
+        assert_eq!(argmax(&[1.0, f64::NAN, 5.0, f64::NAN]), 1);
+        assert_eq!(py_max(10.0, py_min(f64::NAN, 100.0)), 10.0);
+        let h = hanning(11);
+        assert!((h[5] - 1.0).abs() < 1e-15 && h[0] == 0.0 && (h[1] - 0.0954915028125263).abs() < 1e-12);
+        assert!(change_np(f64::NAN, |r| r).is_nan());
+    }
+
+    #[test]
+    fn decode_centre_cell_with_zero_regression() {
+        let cfg = TrackerConfig::default();
+        let cells = 121;
+        let (pred, score) = decode(&cfg, &vec![0.0; 4 * cells], &vec![0.0; 2 * cells], &vec![0.4; cells]);
+        // Centre cell (5,5): anchor 16*5 + 63 - 143 = 0; zero sizes.
+        assert_eq!(pred[60], [0.0, 0.0, 0.0, 0.0]);
+        assert_eq!(pred[0][..2], [-80.0, -80.0]);
+        assert_eq!(score[0], ((0.5f32 + 0.4f32) / 2.0) as f64);
+    }
+}

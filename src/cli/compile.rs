@@ -1,0 +1,67 @@
+//! `prl compile`.
+
+use std::path::{Path, PathBuf};
+
+use clap::Args;
+use prl_compiler::{build_model, compile, BuiltModel};
+use prl_runtime::TrackerConfig;
+
+use super::build::{default_source, describe};
+use super::{spinner, WeightsArgs};
+
+/// The tracker settings file of the repository.
+pub const DEFAULT_TRACKER_TOML: &str = "models/prl-track/tracker.toml";
+
+#[derive(Args)]
+pub struct CompileArgs {
+    /// A model directory written by `prl build` (else the network is built from the weights
+    /// options, or the default `prl build` uses).
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["checkpoint", "random_seed"])]
+    model: Option<PathBuf>,
+    #[command(flatten)]
+    weights: WeightsArgs,
+    /// Tracker settings to store in the plan (TOML).
+    #[arg(long, value_name = "FILE", default_value = DEFAULT_TRACKER_TOML)]
+    tracker: PathBuf,
+    /// Plan directory to write.
+    #[arg(long, default_value = "models/prl-track/plan")]
+    out: PathBuf,
+}
+
+/// Tracker settings from `path`; the official ones when the default file is absent.
+pub fn tracker_config(path: &Path) -> anyhow::Result<TrackerConfig> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message())),
+        Err(_) if path == Path::new(DEFAULT_TRACKER_TOML) => Ok(TrackerConfig::default()),
+        Err(e) => Err(anyhow::anyhow!("{}: {e}", path.display())),
+    }
+}
+
+pub fn run(a: CompileArgs) -> anyhow::Result<()> {
+    let tracker = tracker_config(&a.tracker)?;
+    let model = match &a.model {
+        Some(dir) => BuiltModel::read(dir)?,
+        None => {
+            let source = a.weights.source_or(default_source);
+            let pb = spinner(&format!("building PRL-Track from {}", describe(&source)));
+            let m = build_model(&source);
+            pb.finish_and_clear();
+            m?
+        }
+    };
+    let pb = spinner("compiling: tract declutters both graphs and writes them as NNEF");
+    let plan = compile(&model, &tracker).and_then(|p| p.write(&a.out).map(|_| p));
+    pb.finish_and_clear();
+    let plan = plan?;
+    let size = |b: &[u8]| b.len() as f64 / 1e6;
+    println!(
+        "wrote plan {} ({}, {}: template {:.1} MB, search {:.1} MB, tract {})",
+        a.out.display(),
+        plan.manifest.precision,
+        plan.manifest.weights.note,
+        size(&plan.template),
+        size(&plan.search),
+        plan.manifest.tract_version
+    );
+    Ok(())
+}

@@ -1,0 +1,113 @@
+//! Frame sequences: OTB / UAV123 style folders (`img/`, `groundtruth_rect.txt`) or bare frame
+//! folders, and box files.
+
+use std::path::{Path, PathBuf};
+
+use prl_runtime::BBox;
+
+/// Bad input, naming the file.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {msg}")]
+pub struct InputError {
+    /// The offending file or folder.
+    pub path: PathBuf,
+    /// What is wrong.
+    pub msg: String,
+}
+
+impl InputError {
+    /// An error about `path`.
+    pub fn new(path: &Path, msg: impl Into<String>) -> Self {
+        InputError { path: path.to_path_buf(), msg: msg.into() }
+    }
+}
+
+/// A sequence: its frames in order and, when known, one ground-truth box per frame.
+#[derive(Debug, Clone)]
+pub struct Sequence {
+    /// Folder name.
+    pub name: String,
+    /// Frame files, sorted by name.
+    pub frames: Vec<PathBuf>,
+    /// `x,y,w,h` per frame (NaN rows where the target is absent), if the sequence has them.
+    pub groundtruth: Option<Vec<[f64; 4]>>,
+}
+
+const FRAME_EXTENSIONS: [&str; 5] = ["jpg", "jpeg", "png", "bmp", "webp"];
+
+impl Sequence {
+    /// An OTB/UAV123-style folder: frames in `img/` (or the folder itself), ground truth in
+    /// `groundtruth_rect.txt` (or `groundtruth.txt`).
+    pub fn open(dir: &Path) -> Result<Sequence, InputError> {
+        let img = dir.join("img");
+        let frames = Self::list_frames(if img.is_dir() { &img } else { dir })?;
+        let gt_path = ["groundtruth_rect.txt", "groundtruth.txt"].iter().map(|n| dir.join(n)).find(|p| p.is_file());
+        let groundtruth = match gt_path {
+            Some(p) => {
+                let gt = parse_boxes(&p)?;
+                if gt.len() < frames.len() {
+                    return Err(InputError::new(&p, format!("{} boxes for {} frames", gt.len(), frames.len())));
+                }
+                Some(gt)
+            }
+            None => None,
+        };
+        let name =
+            dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
+        Ok(Sequence { name, frames, groundtruth })
+    }
+
+    /// The image files of a folder, sorted by name.
+    pub fn list_frames(dir: &Path) -> Result<Vec<PathBuf>, InputError> {
+        let entries = std::fs::read_dir(dir).map_err(|e| InputError::new(dir, format!("cannot list frames: {e}")))?;
+        let mut frames: Vec<PathBuf> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.extension()
+                    .and_then(|e| e.to_str())
+                    .is_some_and(|e| FRAME_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+            })
+            .collect();
+        frames.sort();
+        if frames.is_empty() {
+            return Err(InputError::new(dir, "no frames (jpg, png, bmp, webp) in this folder"));
+        }
+        Ok(frames)
+    }
+}
+
+/// Parse a box file: one `x,y,w,h` per line, separated by commas, tabs or spaces; integers or
+/// floats; `NaN` rows kept. Blank lines are skipped; anything else malformed is an error naming
+/// the file and line.
+pub fn parse_boxes(path: &Path) -> Result<Vec<[f64; 4]>, InputError> {
+    let text = std::fs::read_to_string(path).map_err(|e| InputError::new(path, format!("cannot read: {e}")))?;
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        if line.trim().is_empty() {
+            continue;
+        }
+        out.push(parse_box(line).map_err(|m| InputError::new(path, format!("line {}: {m}", i + 1)))?);
+    }
+    Ok(out)
+}
+
+/// Parse one `x,y,w,h` box (commas, tabs or spaces).
+pub fn parse_box(line: &str) -> Result<[f64; 4], String> {
+    let fields: Vec<&str> = line.split([',', '\t', ' ']).map(str::trim).filter(|f| !f.is_empty()).collect();
+    if fields.len() != 4 {
+        return Err(format!("expected 4 numbers x,y,w,h, found {:?}", line.trim()));
+    }
+    let mut b = [0f64; 4];
+    for (slot, f) in b.iter_mut().zip(&fields) {
+        *slot = f.parse().map_err(|_| format!("`{f}` is not a number"))?;
+    }
+    Ok(b)
+}
+
+/// The box the official `tools/test.py` hands to `init` for a ground-truth `x,y,w,h`:
+/// `[cx - (w-1)/2, cy - (h-1)/2, w, h]` with `cx = x + w/2`, `cy = y + h/2`.
+pub fn init_box_from_groundtruth(gt: [f64; 4]) -> BBox {
+    let [x, y, w, h] = gt;
+    let (cx, cy) = (x + w / 2.0, y + h / 2.0);
+    BBox { x: cx - (w - 1.0) / 2.0, y: cy - (h - 1.0) / 2.0, w, h }
+}

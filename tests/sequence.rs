@@ -1,0 +1,46 @@
+//! Sequence folders and box files, as OTB / UAV123 lay them out.
+
+use prl_track::{init_box_from_groundtruth, parse_box, parse_boxes, Sequence};
+
+#[test]
+fn boxes_with_any_separator_and_nan_rows() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("gt.txt");
+    std::fs::write(&p, "1,2,3,4\n5\t6\t7\t8\n9 10  11 12\n\nNaN,NaN,NaN,NaN\n1.5,2.25,3,4\n").unwrap();
+    let b = parse_boxes(&p).unwrap();
+    assert_eq!(b.len(), 5);
+    assert_eq!(b[1], [5., 6., 7., 8.]);
+    assert_eq!(b[2], [9., 10., 11., 12.]);
+    assert!(b[3].iter().all(|v| v.is_nan()));
+    assert_eq!(b[4], [1.5, 2.25, 3., 4.]);
+    std::fs::write(&p, "1,2,3,4\n1,2,x,4\n").unwrap();
+    let err = parse_boxes(&p).unwrap_err().to_string();
+    assert!(err.contains("gt.txt") && err.contains("line 2") && err.contains("`x`"), "{err}");
+    assert!(parse_box("1,2,3").is_err());
+}
+
+#[test]
+fn init_box_is_what_tools_test_py_hands_to_init() {
+    let b = init_box_from_groundtruth([110., 108., 36., 24.]);
+    assert_eq!([b.x, b.y, b.w, b.h], [110.5, 108.5, 36., 24.]);
+}
+
+#[test]
+fn sequence_folders() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir(dir.path().join("img")).unwrap();
+    for i in [2, 1, 3] {
+        std::fs::write(dir.path().join(format!("img/{i:06}.jpg")), b"").unwrap();
+    }
+    std::fs::write(dir.path().join("img/notes.txt"), b"").unwrap();
+    std::fs::write(dir.path().join("groundtruth_rect.txt"), "1,1,5,5\n2,2,5,5\n3,3,5,5\n").unwrap();
+    let s = Sequence::open(dir.path()).unwrap();
+    let names: Vec<_> = s.frames.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
+    assert_eq!(names, ["000001.jpg", "000002.jpg", "000003.jpg"]);
+    assert_eq!(s.groundtruth.unwrap().len(), 3);
+    std::fs::write(dir.path().join("groundtruth_rect.txt"), "1,1,5,5\n").unwrap();
+    let err = Sequence::open(dir.path()).unwrap_err().to_string();
+    assert!(err.contains("1 boxes for 3 frames"), "{err}");
+    let empty = tempfile::tempdir().unwrap();
+    assert!(Sequence::open(empty.path()).unwrap_err().to_string().contains("no frames"));
+}

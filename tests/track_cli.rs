@@ -1,0 +1,90 @@
+//! `prl track` and `prl compile` as a user runs them: results files, frame conversions, errors.
+
+mod common;
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn prl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_prl")).args(args).current_dir(env!("CARGO_MANIFEST_DIR")).output().unwrap()
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).trim().to_string()
+}
+
+fn drift_frame(i: usize) -> image::RgbImage {
+    image::open(common::golden_dir().join(format!("seq_drift/img/{i:06}.png"))).unwrap().to_rgb8()
+}
+
+/// Three frames; the second as 16-bit grey, which is converted to 8-bit colour.
+fn frames_dir(dir: &Path) {
+    drift_frame(1).save(dir.join("000001.png")).unwrap();
+    let grey = image::DynamicImage::ImageRgb8(drift_frame(2)).to_luma16();
+    grey.save(dir.join("000002.png")).unwrap();
+    drift_frame(3).save(dir.join("000003.png")).unwrap();
+}
+
+#[test]
+fn track_a_frame_folder_and_write_results() {
+    let plan = common::reference_plan();
+    let dir = tempfile::tempdir().unwrap();
+    frames_dir(dir.path());
+    let results = dir.path().join("out/results.txt");
+    std::fs::create_dir(dir.path().join("out")).unwrap();
+    let vis = dir.path().join("vis");
+    let o = prl(&[
+        "track",
+        "--plan",
+        plan.to_str().unwrap(),
+        "--frames",
+        dir.path().to_str().unwrap(),
+        "--init",
+        "110.5,108.5,36,24",
+        "--results",
+        results.to_str().unwrap(),
+        "--vis",
+        vis.to_str().unwrap(),
+        "--threads",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let lines: Vec<String> = std::fs::read_to_string(&results).unwrap().lines().map(str::to_string).collect();
+    assert_eq!(lines.len(), 3);
+    assert_eq!(lines[0], "110.5,108.5,36,24");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("frames: 3") && stdout.contains("network"), "{stdout}");
+    assert_eq!(std::fs::read_dir(&vis).unwrap().count(), 3);
+}
+
+#[test]
+fn bad_track_inputs_are_one_line_errors() {
+    let plan = common::reference_plan();
+    let plan = plan.to_str().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    frames_dir(dir.path());
+    let d = dir.path().to_str().unwrap();
+    let check = |args: &[&str], needle: &str| {
+        let o = prl(args);
+        assert!(!o.status.success(), "{args:?} succeeded");
+        let err = stderr(&o);
+        assert!(err.lines().count() == 1 && err.starts_with("error: ") && err.contains(needle), "{args:?}: {err}");
+    };
+    check(&["track", "--plan", plan, "--frames", d, "--init", "400,300,10,10"], "outside");
+    check(&["track", "--plan", plan, "--frames", d, "--init", "10,10,0,5"], "positive size");
+    // Malformed arguments are clap's usage errors (exit 2, with its hint line).
+    let o = prl(&["track", "--plan", plan, "--frames", d, "--init", "10,10,5"]);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(stderr(&o).contains("expected 4 numbers x,y,w,h"), "{}", stderr(&o));
+    check(
+        &["track", "--plan", plan, "--frames", d, "--init", "110,108,36,24", "--results", "/nonexistent/dir/r.txt"],
+        "/nonexistent/dir/r.txt",
+    );
+    check(&["track", "--plan", "/nonexistent/plan", "--frames", d, "--init", "110,108,36,24"], "/nonexistent/plan");
+    // A frame of another size, and a broken JPEG: named.
+    image::RgbImage::new(64, 48).save(dir.path().join("000004.png")).unwrap();
+    check(&["track", "--plan", plan, "--frames", d, "--init", "110,108,36,24"], "000004.png");
+    std::fs::remove_file(dir.path().join("000004.png")).unwrap();
+    std::fs::write(dir.path().join("000004.jpg"), b"\xff\xd8\xff\xe0 not really a jpeg").unwrap();
+    check(&["track", "--plan", plan, "--frames", d, "--init", "110,108,36,24"], "000004.jpg");
+}

@@ -1,0 +1,152 @@
+//! The runtime against the official tracker: exact crops, the same boxes and scores frame by
+//! frame on the three reference sequences, and the plan against the golden tensors.
+
+mod common;
+
+use prl_compiler::{net, read_golden, OnnxRunner, Weights};
+use prl_runtime::{get_subwindow, Frame, Plan, Tracker};
+use prl_track::{init_box_from_groundtruth, load_frame, Sequence};
+
+struct Trace {
+    boxes: Vec<[f64; 4]>,
+    scores: Vec<Option<f64>>,
+}
+
+fn trace(name: &str) -> Trace {
+    let text = std::fs::read_to_string(common::golden_dir().join(format!("trace_{name}.json"))).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let boxes =
+        v["boxes"].as_array().unwrap().iter().map(|b| std::array::from_fn(|i| b[i].as_f64().unwrap())).collect();
+    let scores = v["scores"].as_array().unwrap().iter().map(|s| s.as_f64()).collect();
+    Trace { boxes, scores }
+}
+
+/// The official uint8 NCHW crops of a trace, as interleaved BGR like `get_subwindow` returns.
+fn official_crop(name: &str, key: &str) -> Vec<u8> {
+    let bytes = std::fs::read(common::golden_dir().join(format!("trace_{name}_crops.safetensors"))).unwrap();
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let t = st.tensor(key).unwrap();
+    let (side, data) = (t.shape()[3], t.data());
+    let plane = side * side;
+    (0..plane).flat_map(|i| [data[i], data[plane + i], data[2 * plane + i]]).collect()
+}
+
+fn context(size: (f64, f64)) -> f64 {
+    let ctx = 0.5 * (size.0 + size.1);
+    ((size.0 + ctx) * (size.1 + ctx)).sqrt()
+}
+
+fn check_sequence(name: &str) {
+    let seq = Sequence::open(&common::golden_dir().join(format!("seq_{name}"))).unwrap();
+    let t = trace(name);
+    assert_eq!(seq.frames.len(), t.boxes.len());
+    let frames: Vec<Frame> = seq.frames.iter().map(|p| load_frame(p).unwrap()).collect();
+    let init = init_box_from_groundtruth(seq.groundtruth.as_ref().unwrap()[0]);
+    assert_eq!([init.x, init.y, init.w, init.h], t.boxes[0], "{name}: init box as tools/test.py gives it");
+
+    // Crops, exactly: z on frame 1, x on frames 2 and 3 from the official states.
+    let avg = frames[0].channel_mean();
+    let center = |b: [f64; 4]| (b[0] + (b[2] - 1.0) / 2.0, b[1] + (b[3] - 1.0) / 2.0);
+    let s_z = context((init.w, init.h)).round_ties_even();
+    assert_eq!(
+        get_subwindow(&frames[0], center(t.boxes[0]), 127, s_z as usize, avg),
+        official_crop(name, "z_crop"),
+        "{name}: z crop"
+    );
+    let after = |b: [f64; 4]| (b[0] + b[2] / 2.0, b[1] + b[3] / 2.0);
+    for (k, (c, size)) in [(center(t.boxes[0]), (init.w, init.h)), (after(t.boxes[1]), (t.boxes[1][2], t.boxes[1][3]))]
+        .into_iter()
+        .enumerate()
+    {
+        let mut s_z = context(size);
+        if size.0 * size.1 > 0.5 * (frames[0].width() * frames[0].height()) as f64 {
+            s_z = context((init.w, init.h)).round_ties_even();
+        }
+        let s_x = (s_z * 287.0 / 127.0).round_ties_even() as usize;
+        let ours = get_subwindow(&frames[k + 1], c, 287, s_x, avg);
+        assert!(ours == official_crop(name, &format!("x_crop{}", k + 1)), "{name}: x crop {}", k + 1);
+    }
+
+    // The tracker, frame by frame.
+    let plan = Plan::load(common::reference_plan()).unwrap();
+    let config = plan.manifest().tracker.clone();
+    let mut tracker = Tracker::new(plan, config);
+    tracker.init(&frames[0], init).unwrap();
+    for (i, f) in frames.iter().enumerate().skip(1) {
+        let p = tracker.track(f).unwrap();
+        let ours = [p.bbox.x, p.bbox.y, p.bbox.w, p.bbox.h];
+        for k in 0..4 {
+            assert!(
+                (ours[k] - t.boxes[i][k]).abs() <= 0.05,
+                "{name} frame {}: box {ours:?}, official {:?}",
+                i + 1,
+                t.boxes[i]
+            );
+        }
+        let official = t.scores[i].unwrap();
+        assert!((p.score - official).abs() <= 1e-3, "{name} frame {}: score {}, official {official}", i + 1, p.score);
+    }
+}
+
+#[test]
+fn drift_sequence_matches_the_official_tracker() {
+    check_sequence("drift");
+}
+
+#[test]
+fn large_target_sequence_matches_the_official_tracker() {
+    check_sequence("large");
+}
+
+#[test]
+fn border_sequence_matches_the_official_tracker() {
+    check_sequence("border");
+}
+
+#[test]
+fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
+    let dir = common::golden_dir();
+    let golden = read_golden(&dir.join("golden.safetensors")).unwrap();
+    let plan = Plan::load(common::reference_plan()).unwrap();
+    let zf = plan.template(&golden["z"].data).unwrap();
+    let out = plan.search(&golden["x"].data, &zf).unwrap();
+    for (name, ours) in [("loc", &out.loc), ("cls1", &out.cls1), ("cls2", &out.cls2)] {
+        let (rel, _) = prl_compiler::relative_error(ours, &golden[name].data);
+        assert!(rel <= 1e-4, "{name}: relative error {rel:e}");
+    }
+    // Same function as the ONNX graphs run directly.
+    let weights =
+        Weights::from_checkpoint(prl_compiler::checkpoint::Checkpoint::load(dir.join("checkpoint.pth")).unwrap());
+    let network = net::build_network(&weights).unwrap();
+    let t = OnnxRunner::new(&network.template.encode(""), "template", &[net::TEMPLATE_INPUT], None).unwrap();
+    let zf_onnx = t.run(&[&golden["z"]]).unwrap();
+    let inputs: Vec<_> = std::iter::once(net::SEARCH_INPUT).chain(net::TEMPLATE_FEATURES).collect();
+    let s = OnnxRunner::new(&network.search.encode(""), "search", &inputs, None).unwrap();
+    let mut args = vec![&golden["x"]];
+    args.extend(zf_onnx.iter());
+    let onnx = s.run(&args).unwrap();
+    for (ours, reference) in [&out.loc, &out.cls1, &out.cls2].into_iter().zip(&onnx) {
+        let (rel, _) = prl_compiler::relative_error(ours, &reference.data);
+        assert!(rel <= 1e-6, "plan vs ONNX: relative error {rel:e}");
+    }
+}
+
+#[test]
+fn corrupt_or_mismatched_plans_are_refused() {
+    let src = common::reference_plan();
+    let dir = tempfile::tempdir().unwrap();
+    for f in ["plan.json", "template.nnef.tgz", "search.nnef.tgz"] {
+        std::fs::copy(src.join(f), dir.path().join(f)).unwrap();
+    }
+    let mut bytes = std::fs::read(dir.path().join("search.nnef.tgz")).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0xff;
+    std::fs::write(dir.path().join("search.nnef.tgz"), &bytes).unwrap();
+    let err = Plan::load(dir.path()).err().unwrap().to_string();
+    assert!(err.contains("search.nnef.tgz") && err.contains("sha256"), "{err}");
+    std::fs::write(dir.path().join("plan.json"), b"{\"format_version\": 99}").unwrap();
+    let err = Plan::load(dir.path()).err().unwrap().to_string();
+    assert!(err.contains("plan.json"), "{err}");
+    std::fs::remove_file(dir.path().join("plan.json")).unwrap();
+    assert!(Plan::load(dir.path()).is_err());
+}
