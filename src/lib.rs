@@ -3,7 +3,9 @@
 //! the way the official code (OpenCV) does.
 
 mod frames;
+mod metrics;
 mod sequence;
 
 pub use frames::load_frame;
+pub use metrics::iou;
 pub use sequence::{init_box_from_groundtruth, parse_box, parse_boxes, InputError, Sequence};

@@ -32,3 +32,19 @@ fn real_sequences_run_end_to_end() {
         }
     }
 }
+
+/// JPEG frames decode to exactly OpenCV's pixels: SHA-256 of `cv2.imread(path).tobytes()` (BGR,
+/// opencv-python 5.0, libjpeg-turbo), computed once and written here.
+#[test]
+fn jpeg_frames_decode_to_opencvs_pixels() {
+    use sha2::{Digest, Sha256};
+    let root = common::golden_dir().join("../../data/uav123_10fps");
+    for (file, opencv) in [
+        ("building4/img/000001.jpg", "e02fc6e8001b79cdb8f6a7f3274b510c0449c2f45582fdaea04f09f44d6ac647"),
+        ("wakeboard7/img/000030.jpg", "0ec5426061bc2eca8843bb6b1498183341c558f80bb259e69e13687c74eb4f80"),
+    ] {
+        let f = load_frame(&root.join(file)).unwrap();
+        let ours: String = Sha256::digest(f.bgr()).iter().map(|b| format!("{b:02x}")).collect();
+        assert_eq!(ours, opencv, "{file}");
+    }
+}

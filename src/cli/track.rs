@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use clap::Args;
 use prl_runtime::{set_threads, BBox, Frame, Plan, Prediction, Tracker};
-use prl_track::{init_box_from_groundtruth, load_frame, InputError, Sequence};
+use prl_track::{init_box_from_groundtruth, iou, load_frame, InputError, Sequence};
 
 use super::write_atomically;
 
@@ -76,19 +76,6 @@ impl Summary {
         if let Some(iou) = self.mean_iou {
             println!("mean IoU with the ground truth: {iou:.3}");
         }
-    }
-}
-
-/// IoU of two x,y,w,h boxes (no +1 convention).
-pub fn iou(a: [f64; 4], b: [f64; 4]) -> f64 {
-    let ix = (a[0] + a[2]).min(b[0] + b[2]) - a[0].max(b[0]);
-    let iy = (a[1] + a[3]).min(b[1] + b[3]) - a[1].max(b[1]);
-    let inter = ix.max(0.0) * iy.max(0.0);
-    let union = a[2] * a[3] + b[2] * b[3] - inter;
-    if union > 0.0 {
-        (inter / union).clamp(0.0, 1.0)
-    } else {
-        0.0
     }
 }
 
