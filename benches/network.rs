@@ -3,7 +3,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use prl_compiler::checkpoint::Checkpoint;
-use prl_compiler::{net, read_golden, OnnxRunner, Weights};
+use prl_compiler::{net, read_golden, NetworkRunner, Weights};
 
 /// Multiply-accumulates of each graph, counted from its convolutions and matmuls.
 const TEMPLATE_GMAC: f64 = 0.71;
@@ -20,19 +20,15 @@ fn graphs(c: &mut Criterion) {
     let weights = Weights::from_checkpoint(Checkpoint::load(dir.join("checkpoint.pth")).expect("checkpoint"));
     let golden = read_golden(&dir.join("golden.safetensors")).expect("golden");
     let network = net::build_network(&weights).expect("network");
-    let template = OnnxRunner::new(&network.template.encode(""), "template", &[net::TEMPLATE_INPUT], None).unwrap();
-    let inputs: Vec<_> = std::iter::once(net::SEARCH_INPUT).chain(net::TEMPLATE_FEATURES).collect();
-    let search = OnnxRunner::new(&network.search.encode(""), "search", &inputs, None).unwrap();
-    let zf = template.run(&[&golden["z"]]).unwrap();
-    let mut args = vec![&golden["x"]];
-    args.extend(zf.iter());
+    let runner = NetworkRunner::new(&network, None).unwrap();
+    let zf = runner.template(&golden["z"]).unwrap();
 
     let mut g = c.benchmark_group("fp32");
     g.sample_size(10);
     g.throughput(Throughput::Elements((2.0 * TEMPLATE_GMAC * 1e9) as u64));
-    g.bench_function("template graph (FLOP)", |b| b.iter(|| template.run(&[&golden["z"]]).unwrap()));
+    g.bench_function("template graph (FLOP)", |b| b.iter(|| runner.template(&golden["z"]).unwrap()));
     g.throughput(Throughput::Elements((2.0 * SEARCH_GMAC * 1e9) as u64));
-    g.bench_function("search graph (FLOP)", |b| b.iter(|| search.run(&args).unwrap()));
+    g.bench_function("search graph (FLOP)", |b| b.iter(|| runner.search(&golden["x"], &zf).unwrap()));
     g.finish();
 }
 

@@ -6,7 +6,7 @@ mod common;
 use common::{f32_bytes, torch_zip, Pickle};
 use prl_compiler::checkpoint::{Checkpoint, Entry};
 use prl_compiler::net::{self, sincos_pos_embed};
-use prl_compiler::{read_golden, verify, OnnxRunner, Weights};
+use prl_compiler::{read_golden, verify, NetworkRunner, Weights};
 
 #[test]
 fn every_stage_matches_the_official_implementation() {
@@ -101,14 +101,10 @@ fn random_weights_are_seeded_and_give_finite_outputs() {
     assert_eq!(a.search.encode(""), b.search.encode(""));
     assert_ne!(a.search.encode(""), c.search.encode(""));
     let golden = read_golden(&common::golden_dir().join("golden.safetensors")).unwrap();
-    let t = OnnxRunner::new(&a.template.encode(""), "template", &[net::TEMPLATE_INPUT], None).unwrap();
-    let zf = t.run(&[&golden["z"]]).unwrap();
-    let inputs: Vec<_> = std::iter::once(net::SEARCH_INPUT).chain(net::TEMPLATE_FEATURES).collect();
-    let s = OnnxRunner::new(&a.search.encode(""), "search", &inputs, None).unwrap();
-    let mut args = vec![&golden["x"]];
-    args.extend(zf.iter());
-    let outs = s.run(&args).unwrap();
-    assert_eq!(s.output_names(), ["loc", "cls1", "cls2"]);
+    let runner = NetworkRunner::new(&a, None).unwrap();
+    let zf = runner.template(&golden["z"]).unwrap();
+    let outs = runner.search(&golden["x"], &zf).unwrap();
+    assert_eq!(runner.search.output_names(), ["loc", "cls1", "cls2"]);
     for (o, spec) in outs.iter().zip(net::SEARCH_OUTPUTS) {
         assert_eq!(o.shape, spec.shape);
         assert!(o.data.iter().all(|v| v.is_finite()), "{} not finite", spec.name);

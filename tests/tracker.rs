@@ -3,7 +3,7 @@
 
 mod common;
 
-use prl_compiler::{net, read_golden, OnnxRunner, Weights};
+use prl_compiler::{net, read_golden, NetworkRunner, Weights};
 use prl_runtime::{get_subwindow, Frame, Plan, Tracker};
 use prl_track::{init_box_from_groundtruth, load_frame, Sequence};
 
@@ -118,13 +118,8 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
     let weights =
         Weights::from_checkpoint(prl_compiler::checkpoint::Checkpoint::load(dir.join("checkpoint.pth")).unwrap());
     let network = net::build_network(&weights).unwrap();
-    let t = OnnxRunner::new(&network.template.encode(""), "template", &[net::TEMPLATE_INPUT], None).unwrap();
-    let zf_onnx = t.run(&[&golden["z"]]).unwrap();
-    let inputs: Vec<_> = std::iter::once(net::SEARCH_INPUT).chain(net::TEMPLATE_FEATURES).collect();
-    let s = OnnxRunner::new(&network.search.encode(""), "search", &inputs, None).unwrap();
-    let mut args = vec![&golden["x"]];
-    args.extend(zf_onnx.iter());
-    let onnx = s.run(&args).unwrap();
+    let runner = NetworkRunner::new(&network, None).unwrap();
+    let onnx = runner.search(&golden["x"], &runner.template(&golden["z"]).unwrap()).unwrap();
     for (ours, reference) in [&out.loc, &out.cls1, &out.cls2].into_iter().zip(&onnx) {
         let (rel, _) = prl_compiler::relative_error(ours, &reference.data);
         assert!(rel <= 1e-6, "plan vs ONNX: relative error {rel:e}");

@@ -143,15 +143,8 @@ pub fn preprocessing() -> Preprocessing {
 impl BuiltModel {
     /// Write `template.onnx`, `search.onnx` and `manifest.json` into `dir` (atomically).
     pub fn write(&self, dir: &Path) -> Result<()> {
-        let json = serde_json::to_vec_pretty(&self.manifest).map_err(|e| Error::Other(e.to_string()))?;
-        write_all_atomically(
-            dir,
-            &[
-                (&self.manifest.template.file, &self.template),
-                (&self.manifest.search.file, &self.search),
-                (MODEL_MANIFEST, &json),
-            ],
-        )
+        let m = &self.manifest;
+        write_graph_dir(dir, MODEL_MANIFEST, m, [(&m.template.file, &self.template), (&m.search.file, &self.search)])
     }
 
     /// Read a model directory written by [`BuiltModel::write`], checking each graph's SHA-256.
@@ -178,6 +171,17 @@ impl BuiltModel {
         let (template, search) = (read(&manifest.template)?, read(&manifest.search)?);
         Ok(BuiltModel { manifest, template, search, unused_keys: vec![] })
     }
+}
+
+/// Write a directory of two graph files and the JSON manifest describing them.
+pub(crate) fn write_graph_dir(
+    dir: &Path,
+    manifest_name: &str,
+    manifest: &impl Serialize,
+    graphs: [(&str, &[u8]); 2],
+) -> Result<()> {
+    let json = serde_json::to_vec_pretty(manifest).map_err(|e| Error::Other(e.to_string()))?;
+    write_all_atomically(dir, &[graphs[0], graphs[1], (manifest_name, &json)])
 }
 
 /// Write every file to a temporary beside it, then rename them all: a failure leaves no

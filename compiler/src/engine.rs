@@ -4,7 +4,7 @@ use std::sync::Arc;
 
 use tract_onnx::prelude::{self as tp, Framework, InferenceFact, InferenceModelExt};
 
-use crate::net::TensorSpec;
+use crate::net::{self, Network, TensorSpec};
 use crate::{Error, Result, Tensor};
 
 type Plan = Arc<tp::TypedSimplePlan>;
@@ -72,6 +72,36 @@ impl OnnxRunner {
                 Ok(Tensor::new(o.shape().to_vec(), data))
             })
             .collect()
+    }
+}
+
+/// Both graphs of a built network loaded in tract: the template graph, then the search graph
+/// fed with its outputs.
+pub struct NetworkRunner {
+    /// `z` -> `zf1..zf5`.
+    pub template: OnnxRunner,
+    /// `x`, `zf1..zf5` -> `loc`, `cls1`, `cls2` (or the values selected at load).
+    pub search: OnnxRunner,
+}
+
+impl NetworkRunner {
+    /// Load both graphs; `search_outputs` selects named values of the search graph to compute.
+    pub fn new(network: &Network, search_outputs: Option<&[&str]>) -> Result<Self> {
+        Ok(NetworkRunner {
+            template: OnnxRunner::new(&network.template.encode(""), "template graph", &[net::TEMPLATE_INPUT], None)?,
+            search: OnnxRunner::new(&network.search.encode(""), "search graph", &net::search_inputs(), search_outputs)?,
+        })
+    }
+
+    /// Template features of a template crop.
+    pub fn template(&self, z: &Tensor) -> Result<Vec<Tensor>> {
+        self.template.run(&[z])
+    }
+
+    /// The search graph's outputs for a search crop and template features.
+    pub fn search(&self, x: &Tensor, zf: &[Tensor]) -> Result<Vec<Tensor>> {
+        let args: Vec<&Tensor> = std::iter::once(x).chain(zf).collect();
+        self.search.run(&args)
     }
 }
 

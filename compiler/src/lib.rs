@@ -21,7 +21,7 @@ mod verify;
 mod weights;
 
 pub use artefacts::{build_model, preprocessing, BuiltModel, Manifest, WeightsSource, MODEL_MANIFEST};
-pub use engine::OnnxRunner;
+pub use engine::{NetworkRunner, OnnxRunner};
 pub use error::{Error, Result};
 pub use plan::{compile, CompiledPlan, TRACT_VERSION};
 pub use tensor::{relative_error, Tensor};

@@ -10,7 +10,7 @@ use prl_runtime::{GraphInfo, PlanManifest, TrackerConfig, PLAN_FORMAT_VERSION, P
 use sha2::{Digest, Sha256};
 use tract_onnx::prelude::{self as tp, Framework, InferenceFact, InferenceModelExt};
 
-use crate::artefacts::write_all_atomically;
+use crate::artefacts::write_graph_dir;
 use crate::checkpoint::hex;
 use crate::{BuiltModel, Error, Result};
 
@@ -55,15 +55,8 @@ pub fn compile(model: &BuiltModel, tracker: &TrackerConfig) -> Result<CompiledPl
 impl CompiledPlan {
     /// Write the plan directory `dir` (atomically, file by file).
     pub fn write(&self, dir: &Path) -> Result<()> {
-        let json = serde_json::to_vec_pretty(&self.manifest).map_err(|e| Error::Other(e.to_string()))?;
-        write_all_atomically(
-            dir,
-            &[
-                (&self.manifest.template.file, &self.template),
-                (&self.manifest.search.file, &self.search),
-                (PLAN_MANIFEST, &json),
-            ],
-        )
+        let m = &self.manifest;
+        write_graph_dir(dir, PLAN_MANIFEST, m, [(&m.template.file, &self.template), (&m.search.file, &self.search)])
     }
 }
 

@@ -65,6 +65,11 @@ pub const SEARCH_STAGES: [TensorSpec; 14] = [
     t("hmg", &[1, 192, 11, 11]),
 ];
 
+/// The search graph's inputs, in order: `x`, then `zf1..zf5`.
+pub fn search_inputs() -> Vec<TensorSpec> {
+    std::iter::once(SEARCH_INPUT).chain(TEMPLATE_FEATURES).collect()
+}
+
 /// The two graphs of the network.
 pub struct Network {
     /// `z` -> `zf1..zf5`.
