@@ -3,6 +3,13 @@
 mod cli;
 
 fn main() {
+    // Like other command-line tools, end quietly when the reader of our output goes away
+    // (`prl track ... | head`) instead of failing on a broken pipe.
+    #[cfg(unix)]
+    // SAFETY: restoring the default disposition of SIGPIPE before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     if let Err(e) = cli::run() {
         // One line: the error and its causes.
         eprintln!("error: {e:#}");

@@ -130,15 +130,15 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
 fn corrupt_or_mismatched_plans_are_refused() {
     let src = common::reference_plan();
     let dir = tempfile::tempdir().unwrap();
-    for f in ["plan.json", "template.nnef.tgz", "search.nnef.tgz"] {
+    for f in ["plan.json", "template.nnef.tar", "search.nnef.tar"] {
         std::fs::copy(src.join(f), dir.path().join(f)).unwrap();
     }
-    let mut bytes = std::fs::read(dir.path().join("search.nnef.tgz")).unwrap();
+    let mut bytes = std::fs::read(dir.path().join("search.nnef.tar")).unwrap();
     let mid = bytes.len() / 2;
     bytes[mid] ^= 0xff;
-    std::fs::write(dir.path().join("search.nnef.tgz"), &bytes).unwrap();
+    std::fs::write(dir.path().join("search.nnef.tar"), &bytes).unwrap();
     let err = Plan::load(dir.path()).err().unwrap().to_string();
-    assert!(err.contains("search.nnef.tgz") && err.contains("sha256"), "{err}");
+    assert!(err.contains("search.nnef.tar") && err.contains("sha256"), "{err}");
     std::fs::write(dir.path().join("plan.json"), b"{\"format_version\": 99}").unwrap();
     let err = Plan::load(dir.path()).err().unwrap().to_string();
     assert!(err.contains("plan.json"), "{err}");

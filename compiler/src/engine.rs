@@ -2,7 +2,7 @@
 
 use std::sync::Arc;
 
-use tract_onnx::prelude::{self as tp, Framework, InferenceFact, InferenceModelExt};
+use tract_onnx::prelude::{self as tp, Datum as _, Framework, InferenceFact, InferenceModelExt};
 
 use crate::net::{self, Network, TensorSpec};
 use crate::{Error, Result, Tensor};
@@ -104,5 +104,3 @@ impl NetworkRunner {
         self.search.run(&args)
     }
 }
-
-use tract_onnx::prelude::Datum as _;

@@ -1,14 +1,12 @@
 //! `prl compile`: load each ONNX graph with tract, fix its input facts, declutter it, and save
-//! it as NNEF (`.nnef.tgz`) beside a plan manifest. tract cannot serialise optimised models, so a
+//! it as NNEF (`.nnef.tar`) beside a plan manifest. tract cannot serialise optimised models, so a
 //! plan holds decluttered graphs and the runtime optimises them when it loads them.
 
-use std::io::Write;
 use std::path::Path;
 
-use flate2::{write::GzEncoder, Compression};
 use prl_runtime::{GraphInfo, PlanManifest, TrackerConfig, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
 use sha2::{Digest, Sha256};
-use tract_onnx::prelude::{self as tp, Framework, InferenceFact, InferenceModelExt};
+use tract_onnx::prelude::{self as tp, Datum as _, Framework, InferenceFact, InferenceModelExt};
 
 use crate::artefacts::write_graph_dir;
 use crate::checkpoint::hex;
@@ -22,9 +20,9 @@ pub const TRACT_VERSION: &str = "0.23.9";
 pub struct CompiledPlan {
     /// What `plan.json` says.
     pub manifest: PlanManifest,
-    /// `template.nnef.tgz` bytes.
+    /// `template.nnef.tar` bytes.
     pub template: Vec<u8>,
-    /// `search.nnef.tgz` bytes.
+    /// `search.nnef.tar` bytes.
     pub search: Vec<u8>,
 }
 
@@ -44,8 +42,8 @@ pub fn compile(model: &BuiltModel, tracker: &TrackerConfig) -> Result<CompiledPl
         tool: format!("prl-compiler {}", env!("CARGO_PKG_VERSION")),
         tract_version: TRACT_VERSION.into(),
         weights: model.manifest.weights.clone(),
-        template: info(&model.manifest.template, "template.nnef.tgz", &template),
-        search: info(&model.manifest.search, "search.nnef.tgz", &search),
+        template: info(&model.manifest.template, "template.nnef.tar", &template),
+        search: info(&model.manifest.search, "search.nnef.tar", &search),
         preprocessing: model.manifest.preprocessing.clone(),
         tracker: tracker.clone(),
     };
@@ -60,7 +58,7 @@ impl CompiledPlan {
     }
 }
 
-/// Decluttered NNEF of one ONNX graph, gzipped.
+/// Decluttered NNEF of one ONNX graph, as a tar archive.
 fn to_nnef(onnx: &[u8], info: &GraphInfo, context: &str) -> Result<Vec<u8>> {
     let err = |e: tp::TractError| Error::tract(context, format!("{e:#}").replace('\n', " "));
     let mut model = tract_onnx::onnx().model_for_read(&mut &*onnx).map_err(err)?;
@@ -68,9 +66,5 @@ fn to_nnef(onnx: &[u8], info: &GraphInfo, context: &str) -> Result<Vec<u8>> {
         model.set_input_fact(i, InferenceFact::dt_shape(f32::datum_type(), &t.shape)).map_err(err)?;
     }
     let model = model.into_typed().and_then(|m| m.into_decluttered()).map_err(err)?;
-    let mut gz = GzEncoder::new(Vec::new(), Compression::fast());
-    prl_runtime::nnef().write_to_tar(&model, &mut gz).map_err(err)?;
-    gz.flush().and_then(|_| gz.finish()).map_err(|e| Error::Other(format!("{context}: compressing: {e}")))
+    prl_runtime::nnef().write_to_tar(&model, Vec::new()).map_err(err)
 }
-
-use tract_onnx::prelude::Datum as _;

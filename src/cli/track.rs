@@ -22,7 +22,7 @@ pub struct TrackArgs {
     #[arg(long, value_name = "DIR", requires = "init")]
     frames: Option<PathBuf>,
     /// Initial box `x,y,w,h` in the first frame (0-based pixels).
-    #[arg(long, value_name = "X,Y,W,H", value_parser = parse_init)]
+    #[arg(long, value_name = "X,Y,W,H", value_parser = parse_init, allow_hyphen_values = true)]
     init: Option<[f64; 4]>,
     /// Write one `x,y,w,h` line per frame here (pysot format; first line the init box).
     #[arg(long, value_name = "FILE")]
@@ -207,7 +207,16 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     if let Some(dir) = &a.vis {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
+    let t = Instant::now();
     let plan = Plan::load(&a.plan)?;
+    let m = plan.manifest();
+    println!(
+        "plan: {} ({}, {}), loaded in {} ms",
+        a.plan.display(),
+        m.precision,
+        m.weights.note,
+        t.elapsed().as_millis()
+    );
     if plan.manifest().weights.kind == "random" {
         eprintln!("note: {} holds RANDOM weights: it runs, but it cannot track", a.plan.display());
     }
