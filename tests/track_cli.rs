@@ -72,6 +72,7 @@ fn bad_track_inputs_are_one_line_errors() {
     };
     check(&["track", "--plan", plan, "--frames", d, "--init", "400,300,10,10"], "outside");
     check(&["track", "--plan", plan, "--frames", d, "--init", "10,10,0,5"], "positive size");
+    check(&["track", "--plan", plan, "--frames", d, "--init", "10,10,0.1,0.1"], "too small");
     // Malformed arguments are clap's usage errors (exit 2, with its hint line).
     let o = prl(&["track", "--plan", plan, "--frames", d, "--init", "10,10,5"]);
     assert_eq!(o.status.code(), Some(2));
@@ -87,4 +88,30 @@ fn bad_track_inputs_are_one_line_errors() {
     std::fs::remove_file(dir.path().join("000004.png")).unwrap();
     std::fs::write(dir.path().join("000004.jpg"), b"\xff\xd8\xff\xe0 not really a jpeg").unwrap();
     check(&["track", "--plan", plan, "--frames", d, "--init", "110,108,36,24"], "000004.jpg");
+}
+
+#[test]
+fn bench_reports_stages_and_operators() {
+    let plan = common::reference_plan();
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("bench.json");
+    let seq = common::golden_dir().join("seq_drift");
+    let o = prl(&[
+        "bench",
+        "--plan",
+        plan.to_str().unwrap(),
+        "--runs",
+        "1",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let stages: Vec<&str> = report["stages"].as_array().unwrap().iter().map(|s| s["stage"].as_str().unwrap()).collect();
+    assert_eq!(stages, ["template network", "crop + resize", "search network", "post-processing", "tracking step"]);
+    let ops = report["top_ops"].as_array().unwrap();
+    assert_eq!(ops.len(), 12);
+    assert!(ops.iter().any(|o| o["gflops"].as_f64().unwrap() > 0.0));
 }

@@ -145,3 +145,14 @@ fn corrupt_or_mismatched_plans_are_refused() {
     std::fs::remove_file(dir.path().join("plan.json")).unwrap();
     assert!(Plan::load(dir.path()).is_err());
 }
+
+#[test]
+fn search_profile_covers_every_node_slowest_first() {
+    let plan = Plan::load(common::reference_plan()).unwrap();
+    let golden = read_golden(&common::golden_dir().join("golden.safetensors")).unwrap();
+    let zf = plan.template(&golden["z"].data).unwrap();
+    let prof = plan.profile_search(&golden["x"].data, &zf, 1).unwrap();
+    assert!(prof.len() > 100, "{} nodes", prof.len());
+    assert!(prof.windows(2).all(|w| w[0].time >= w[1].time));
+    assert!(prof.iter().any(|n| n.name.starts_with("s1")), "the s1 correlation is profiled");
+}

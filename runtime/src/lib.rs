@@ -33,6 +33,6 @@ pub use frame::{Frame, PixelLayout};
 pub use manifest::{
     GraphInfo, PlanManifest, Preprocessing, TensorInfo, WeightsInfo, PLAN_FORMAT_VERSION, PLAN_MANIFEST,
 };
-pub use plan::{nnef, set_threads, Plan, SearchOutput, TemplateFeatures};
+pub use plan::{nnef, set_threads, NodeTime, Plan, SearchOutput, TemplateFeatures};
 pub use resize::resize_linear_u8;
 pub use tracker::{BBox, Prediction, StepTimings, Tracker};

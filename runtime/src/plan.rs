@@ -111,6 +111,66 @@ impl Plan {
     }
 }
 
+/// Time spent in one node of an optimised graph, averaged over the profiled runs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeTime {
+    /// Node name (names follow the network's modules: `backbone.layer2.conv`, `s1`, `hmg...`).
+    pub name: String,
+    /// tract operator after optimisation.
+    pub op: String,
+    /// Mean time per run.
+    pub time: std::time::Duration,
+    /// Floating-point operations per run as tract counts them (2 per multiply-accumulate).
+    pub flop: f64,
+}
+
+impl Plan {
+    /// tract's per-node profile of the search graph: each node timed over `runs` runs, slowest
+    /// first.
+    pub fn profile_search(&self, x: &[f32], zf: &TemplateFeatures, runs: usize) -> Result<Vec<NodeTime>> {
+        let runs = runs.max(1);
+        let model = self.search.model();
+        let mut totals = vec![std::time::Duration::ZERO; model.nodes().len()];
+        let mut state = TypedSimpleState::new(&self.search).map_err(|e| run_err("search", e))?;
+        for _ in 0..runs {
+            let input = tensor("search", &self.manifest.search.inputs[0].shape, x)?;
+            let mut inputs: TVec<TValue> = tvec![input.into()];
+            inputs.extend(zf.0.iter().cloned());
+            state
+                .run_plan_with_eval(inputs, |ctx, st, node, inputs| {
+                    let t = std::time::Instant::now();
+                    let r = tract_nnef::tract_core::plan::eval(ctx, st, node, inputs);
+                    totals[node.id] += t.elapsed();
+                    r
+                })
+                .map_err(|e| run_err("search", e))?;
+        }
+        let mut out: Vec<NodeTime> = model
+            .nodes()
+            .iter()
+            .map(|n| NodeTime {
+                name: n.name.clone(),
+                op: n.op().name().to_string(),
+                time: totals[n.id] / runs as u32,
+                flop: node_flop(model, n),
+            })
+            .collect();
+        out.sort_by(|a, b| b.time.cmp(&a.time));
+        Ok(out)
+    }
+}
+
+/// 2 x the multiply-accumulates tract's cost model gives a node (0 when it has none).
+fn node_flop(model: &TypedModel, node: &TypedNode) -> f64 {
+    let facts = model.node_input_facts(node.id).unwrap_or_default();
+    let cost = node.op.cost(&facts).unwrap_or_default();
+    cost.iter()
+        .filter(|(c, _)| matches!(c, tract_nnef::tract_core::ops::Cost::FMA(_)))
+        .filter_map(|(_, n)| n.to_i64().ok())
+        .map(|n| 2.0 * n as f64)
+        .sum()
+}
+
 fn tensor(graph: &'static str, shape: &[usize], data: &[f32]) -> Result<Tensor> {
     Tensor::from_shape(shape, data)
         .map_err(|e| Error::Run { graph, msg: format!("input of {} values for shape {shape:?}: {e}", data.len()) })

@@ -135,6 +135,9 @@ impl Tracker {
         }
         let center = (bbox.x + (bbox.w - 1.0) / 2.0, bbox.y + (bbox.h - 1.0) / 2.0);
         let size = (bbox.w, bbox.h);
+        if self.context_size(size) < 1.0 {
+            return Err(Error::Input(format!("init box {bbox:?} is too small: its context crop is under one pixel")));
+        }
         let s_z = round_half_even(self.context_size(size));
         let t0 = Instant::now();
         let channel_average = frame.channel_mean();

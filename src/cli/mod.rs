@@ -1,5 +1,6 @@
 //! Command-line parsing and dispatch.
 
+mod bench;
 mod build;
 mod compile;
 mod demo;
@@ -28,6 +29,8 @@ enum Command {
     Compile(compile::CompileArgs),
     /// Track a target through a frame sequence with a plan.
     Track(track::TrackArgs),
+    /// Time each stage of a tracking step and profile the search graph's operators.
+    Bench(bench::BenchArgs),
     /// Show the whole pipeline working with no input: seeded network, plan, generated video.
     Demo(demo::DemoArgs),
 }
@@ -63,6 +66,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Compile(a) => compile::run(a),
         Command::Track(a) => track::run(a),
         Command::Demo(a) => demo::run(a),
+        Command::Bench(a) => bench::run(a),
     }
 }
 

@@ -1,0 +1,189 @@
+//! `prl bench`: where the time of a tracking step goes on this machine, stage by stage and
+//! operator by operator.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use prl_runtime::{crop_to_tensor, get_subwindow, set_threads, BBox, Frame, Plan, Tracker};
+use prl_track::{init_box_from_groundtruth, load_frame, Sequence};
+use serde::Serialize;
+
+use super::write_atomically;
+
+/// The real frame benchmarked by default (1280x720 JPEG, beside the repository).
+const DEFAULT_SEQUENCE: &str = "../shared/data/uav123_10fps/building4";
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Plan directory written by `prl compile`.
+    #[arg(long, default_value = "models/prl-track/plan")]
+    plan: PathBuf,
+    /// Threads for the network (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Timed runs per stage.
+    #[arg(long, default_value_t = 20)]
+    runs: usize,
+    /// A sequence folder whose first frame and box are used (default: UAV123 building4 if
+    /// present, else a generated 1280x720 frame).
+    #[arg(long, value_name = "DIR")]
+    sequence: Option<PathBuf>,
+    /// How many of the slowest operators to list.
+    #[arg(long, default_value_t = 12)]
+    top: usize,
+    /// Also write the report as JSON.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+}
+
+#[derive(Serialize)]
+struct Stat {
+    stage: &'static str,
+    median_ms: f64,
+    p90_ms: f64,
+}
+
+#[derive(Serialize)]
+struct Op {
+    name: String,
+    op: String,
+    ms: f64,
+    share: f64,
+    gflops: f64,
+}
+
+#[derive(Serialize)]
+struct Report {
+    plan: String,
+    precision: String,
+    threads: usize,
+    runs: usize,
+    frame: String,
+    stages: Vec<Stat>,
+    fps: f64,
+    top_ops: Vec<Op>,
+}
+
+fn stat(stage: &'static str, v: &[Duration]) -> Stat {
+    let mut ms: Vec<f64> = v.iter().map(|d| d.as_secs_f64() * 1e3).collect();
+    ms.sort_by(f64::total_cmp);
+    let at = |q: f64| ms[((ms.len() - 1) as f64 * q).round() as usize];
+    Stat { stage, median_ms: at(0.5), p90_ms: at(0.9) }
+}
+
+fn input(seq: Option<&Path>) -> anyhow::Result<(Frame, BBox, String)> {
+    let dir = seq.map(Path::to_path_buf).or_else(|| Some(PathBuf::from(DEFAULT_SEQUENCE)).filter(|p| p.is_dir()));
+    if let Some(dir) = dir {
+        let s = Sequence::open(&dir)?;
+        let gt = s.groundtruth.as_ref().and_then(|g| g.first()).copied().unwrap_or([600.0, 330.0, 80.0, 60.0]);
+        return Ok((load_frame(&s.frames[0])?, init_box_from_groundtruth(gt), s.frames[0].display().to_string()));
+    }
+    let rgb: Vec<u8> = (0..1280 * 720 * 3).map(|i| ((i * 7919) % 251) as u8).collect();
+    let frame = Frame::from_raw(1280, 720, &rgb, prl_runtime::PixelLayout::Rgb)?;
+    Ok((frame, BBox { x: 600.0, y: 330.0, w: 80.0, h: 60.0 }, "generated 1280x720".into()))
+}
+
+pub fn run(a: BenchArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(a.runs >= 1, "--runs must be at least 1");
+    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    set_threads(threads);
+    let (frame, init, frame_name) = input(a.sequence.as_deref())?;
+    let t = Instant::now();
+    let plan = Plan::load(&a.plan)?;
+    let load = t.elapsed();
+    let precision = plan.manifest().precision.clone();
+    let config = plan.manifest().tracker.clone();
+    let mut tracker = Tracker::new(plan, config.clone());
+    let (mut template, mut crop, mut search, mut post, mut step) = (vec![], vec![], vec![], vec![], vec![]);
+    let pb = indicatif::ProgressBar::new((2 * a.runs + 2) as u64);
+    for _ in 0..a.runs + 1 {
+        tracker.init(&frame, init)?;
+        template.push(tracker.last_timings().network);
+        pb.inc(1);
+    }
+    for i in 0..a.runs + 1 {
+        let t = Instant::now();
+        tracker.track(&frame)?;
+        let total = t.elapsed();
+        pb.inc(1);
+        if i == 0 {
+            continue; // warm-up
+        }
+        let s = tracker.last_timings();
+        crop.push(s.crop);
+        search.push(s.network);
+        post.push(s.post);
+        step.push(total);
+    }
+    pb.finish_and_clear();
+    template.remove(0);
+    // Operator profile of the search graph on a real search crop.
+    let c = (init.x + (init.w - 1.0) / 2.0, init.y + (init.h - 1.0) / 2.0);
+    let ctx = config.context_amount * (init.w + init.h);
+    let s_x = ((init.w + ctx) * (init.h + ctx)).sqrt() * config.instance_size as f64 / config.exemplar_size as f64;
+    let x = crop_to_tensor(
+        &get_subwindow(&frame, c, config.instance_size, s_x.round() as usize, frame.channel_mean()),
+        config.instance_size,
+    );
+    let z = crop_to_tensor(&vec![128u8; config.exemplar_size * config.exemplar_size * 3], config.exemplar_size);
+    let zf = tracker.plan().template(&z)?;
+    let prof = tracker.plan().profile_search(&x, &zf, a.runs.min(5))?;
+    let total: f64 = prof.iter().map(|n| n.time.as_secs_f64()).sum();
+    let top_ops = prof
+        .iter()
+        .take(a.top)
+        .map(|n| {
+            let secs = n.time.as_secs_f64();
+            Op {
+                name: n.name.clone(),
+                op: n.op.clone(),
+                ms: secs * 1e3,
+                share: secs / total,
+                gflops: if secs > 0.0 { n.flop / secs / 1e9 } else { 0.0 },
+            }
+        })
+        .collect();
+    let stages = vec![
+        stat("template network", &template),
+        stat("crop + resize", &crop),
+        stat("search network", &search),
+        stat("post-processing", &post),
+        stat("tracking step", &step),
+    ];
+    let fps = 1e3 / stages[4].median_ms;
+    let report = Report {
+        plan: a.plan.display().to_string(),
+        precision,
+        threads,
+        runs: a.runs,
+        frame: frame_name,
+        stages,
+        fps,
+        top_ops,
+    };
+
+    println!(
+        "plan {} ({}), {} thread(s), {} runs, frame {}; plan load {} ms",
+        report.plan,
+        report.precision,
+        threads,
+        a.runs,
+        report.frame,
+        load.as_millis()
+    );
+    println!("{:<18} {:>10} {:>10}", "stage", "median ms", "p90 ms");
+    for s in &report.stages {
+        println!("{:<18} {:>10.2} {:>10.2}", s.stage, s.median_ms, s.p90_ms);
+    }
+    println!("FPS (tracking step): {:.1}", report.fps);
+    println!("\nslowest operators of the search graph (tract profile, {:.1} ms in all):", total * 1e3);
+    println!("{:>9} {:>6} {:>8}  {:<16} {}", "ms", "share", "GFLOP/s", "op", "node");
+    for o in &report.top_ops {
+        println!("{:>9.2} {:>5.1}% {:>8.1}  {:<16} {}", o.ms, o.share * 100.0, o.gflops, o.op, o.name);
+    }
+    if let Some(path) = &a.json {
+        write_atomically(path, &serde_json::to_vec_pretty(&report)?)?;
+    }
+    Ok(())
+}
