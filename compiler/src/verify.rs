@@ -90,7 +90,9 @@ pub fn verify(weights: &Weights, golden: &BTreeMap<String, Tensor>, tolerance: f
     let mut zf: Vec<Option<Tensor>> =
         net::TEMPLATE_FEATURES.iter().map(|s| check_input(s).map(Option::<&Tensor>::cloned)).collect::<Result<_>>()?;
     if let Some(z) = check_input(&net::TEMPLATE_INPUT)? {
-        let runner = OnnxRunner::new(&network.template.encode(""), "template graph", &[net::TEMPLATE_INPUT], None)?;
+        let names: Vec<&str> = net::TEMPLATE_FEATURES.iter().map(|s| s.name).collect();
+        let runner =
+            OnnxRunner::new(&network.template.encode(""), "template graph", &[net::TEMPLATE_INPUT], Some(&names))?;
         let outs = runner.run(&[z])?;
         for ((spec, out), slot) in net::TEMPLATE_FEATURES.iter().zip(outs).zip(zf.iter_mut()) {
             compare(spec, &out);
@@ -108,11 +110,17 @@ pub fn verify(weights: &Weights, golden: &BTreeMap<String, Tensor>, tolerance: f
                 .collect();
             if !wanted.is_empty() {
                 let names: Vec<&str> = wanted.iter().map(|s| s.name).collect();
-                let inputs: Vec<TensorSpec> =
-                    std::iter::once(net::SEARCH_INPUT).chain(net::TEMPLATE_FEATURES).collect();
-                let runner = OnnxRunner::new(&network.search.encode(""), "search graph", &inputs, Some(&names))?;
-                let mut args = vec![x];
-                args.extend(zf.iter());
+                // The search graph takes layer 1 as its Toeplitz kernel: made from zf1 here.
+                let kernel = OnnxRunner::new(
+                    &net::kernel_graph()?.encode(""),
+                    "layer-1 kernel graph",
+                    &net::TEMPLATE_FEATURES[..1],
+                    None,
+                )?;
+                let zt1 = kernel.run(&[&zf[0]])?.remove(0);
+                let runner =
+                    OnnxRunner::new(&network.search.encode(""), "search graph", &net::search_inputs(), Some(&names))?;
+                let args: Vec<&Tensor> = [x, &zt1].into_iter().chain(&zf[1..]).collect();
                 for (spec, out) in wanted.iter().zip(runner.run(&args)?) {
                     compare(spec, &out);
                 }

@@ -140,7 +140,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
                 op: n.op.clone(),
                 ms: secs * 1e3,
                 share: secs / total,
-                gflops: if secs > 0.0 { n.flop / secs / 1e9 } else { 0.0 },
+                gflops: if secs > 0.0 && n.flop > 0.0 { n.flop / secs / 1e9 } else { 0.0 },
             }
         })
         .collect();
@@ -180,7 +180,8 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     println!("\nslowest operators of the search graph (tract profile, {:.1} ms in all):", total * 1e3);
     println!("{:>9} {:>6} {:>8}  {:<16} {}", "ms", "share", "GFLOP/s", "op", "node");
     for o in &report.top_ops {
-        println!("{:>9.2} {:>5.1}% {:>8.1}  {:<16} {}", o.ms, o.share * 100.0, o.gflops, o.op, o.name);
+        let gflops = if o.gflops > 0.0 { format!("{:.1}", o.gflops) } else { "-".into() };
+        println!("{:>9.2} {:>5.1}% {:>8}  {:<16} {}", o.ms, o.share * 100.0, gflops, o.op, o.name);
     }
     if let Some(path) = &a.json {
         write_atomically(path, &serde_json::to_vec_pretty(&report)?)?;

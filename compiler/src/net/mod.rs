@@ -6,9 +6,11 @@ mod heads;
 mod hmg;
 mod layers;
 mod regulators;
+mod xcorr;
 
 pub use hmg::{hierarchical_attention, sincos_pos_embed};
 pub use regulators::{lip2d, nearest_indices, upsample_nearest};
+pub use xcorr::{toeplitz_kernel, toeplitz_xcorr};
 
 use crate::onnx::Graph;
 use crate::weights::Weights;
@@ -34,7 +36,7 @@ const fn t(name: &'static str, shape: &'static [usize]) -> TensorSpec {
 
 /// Template graph input.
 pub const TEMPLATE_INPUT: TensorSpec = t("z", &[1, 3, TEMPLATE_SIZE, TEMPLATE_SIZE]);
-/// Template graph outputs (search graph inputs after `x`): backbone layers 1..5 of the template.
+/// Backbone layers 1..5 of the template (values of the template graph, golden keys).
 pub const TEMPLATE_FEATURES: [TensorSpec; 5] = [
     t("zf1", &[1, 96, 29, 29]),
     t("zf2", &[1, 256, 12, 12]),
@@ -42,6 +44,12 @@ pub const TEMPLATE_FEATURES: [TensorSpec; 5] = [
     t("zf4", &[1, 384, 8, 8]),
     t("zf5", &[1, 256, 6, 6]),
 ];
+/// Layer 1's template feature as the Toeplitz kernel of the `s1` correlation (29x29 kernel over
+/// 69 columns): computed once per target, so the per-frame correlation is one matrix product.
+pub const TEMPLATE_KERNEL1: TensorSpec = t("zt1", &[96, 29 * 69, 41]);
+/// Template graph outputs, which are the search graph's inputs after `x`.
+pub const TEMPLATE_OUTPUTS: [TensorSpec; 5] =
+    [TEMPLATE_KERNEL1, TEMPLATE_FEATURES[1], TEMPLATE_FEATURES[2], TEMPLATE_FEATURES[3], TEMPLATE_FEATURES[4]];
 /// Search graph image input.
 pub const SEARCH_INPUT: TensorSpec = t("x", &[1, 3, SEARCH_SIZE, SEARCH_SIZE]);
 /// Search graph outputs.
@@ -65,16 +73,16 @@ pub const SEARCH_STAGES: [TensorSpec; 14] = [
     t("hmg", &[1, 192, 11, 11]),
 ];
 
-/// The search graph's inputs, in order: `x`, then `zf1..zf5`.
+/// The search graph's inputs, in order: `x`, then the template graph's outputs.
 pub fn search_inputs() -> Vec<TensorSpec> {
-    std::iter::once(SEARCH_INPUT).chain(TEMPLATE_FEATURES).collect()
+    std::iter::once(SEARCH_INPUT).chain(TEMPLATE_OUTPUTS).collect()
 }
 
 /// The two graphs of the network.
 pub struct Network {
-    /// `z` -> `zf1..zf5`.
+    /// `z` -> `zt1`, `zf2..zf5`.
     pub template: Graph,
-    /// `x`, `zf1..zf5` -> `loc`, `cls1`, `cls2`.
+    /// `x`, `zt1`, `zf2..zf5` -> `loc`, `cls1`, `cls2`.
     pub search: Graph,
 }
 
@@ -88,10 +96,26 @@ pub fn template_graph(weights: &Weights) -> Result<Graph> {
     let w = weights.root();
     let mut g = Graph::new("prl_track_template");
     let z = g.input(TEMPLATE_INPUT.name, TEMPLATE_INPUT.shape)?;
-    let feats = backbone::backbone(&mut g, &w.pp("backbone"), &z, "zf")?;
-    for (f, spec) in feats.iter().zip(TEMPLATE_FEATURES) {
+    let mut feats = backbone::backbone(&mut g, &w.pp("backbone"), &z, "zf")?;
+    feats[0] = layer1_kernel(&mut g, &feats[0])?;
+    for (f, spec) in feats.iter().zip(TEMPLATE_OUTPUTS) {
         g.output(f, spec.shape)?;
     }
+    Ok(g)
+}
+
+fn layer1_kernel(g: &mut Graph, zf1: &crate::onnx::Value) -> Result<crate::onnx::Value> {
+    let [_, c, k, _] = TEMPLATE_FEATURES[0].shape else { unreachable!("rank 4") };
+    xcorr::toeplitz_kernel(g, TEMPLATE_KERNEL1.name, zf1, *c, *k, SEARCH_STAGES[0].shape[3])
+}
+
+/// `zf1` -> `zt1`: the layer-1 kernel of given template features (to feed the search graph
+/// with features computed elsewhere, such as golden tensors).
+pub fn kernel_graph() -> Result<Graph> {
+    let mut g = Graph::new("prl_track_layer1_kernel");
+    let zf1 = g.input(TEMPLATE_FEATURES[0].name, TEMPLATE_FEATURES[0].shape)?;
+    let zt1 = layer1_kernel(&mut g, &zf1)?;
+    g.output(&zt1, TEMPLATE_KERNEL1.shape)?;
     Ok(g)
 }
 
@@ -101,10 +125,13 @@ pub fn search_graph(weights: &Weights) -> Result<Graph> {
     let w = weights.root();
     let mut g = Graph::new("prl_track_search");
     let x = g.input(SEARCH_INPUT.name, SEARCH_INPUT.shape)?;
-    let zf = TEMPLATE_FEATURES.iter().map(|s| g.input(s.name, s.shape)).collect::<Result<Vec<_>>>()?;
+    let zf = TEMPLATE_OUTPUTS.iter().map(|s| g.input(s.name, s.shape)).collect::<Result<Vec<_>>>()?;
     let xf = backbone::backbone(&mut g, &w.pp("backbone"), &x, "xf")?;
-    let mut s = Vec::new();
-    for i in 0..5 {
+    // s1 (29x29 kernel) as one matrix product against the template's Toeplitz kernel; the small
+    // kernels of s2..s5 as depthwise convolutions.
+    let [_, c, h, wd] = SEARCH_STAGES[0].shape else { unreachable!("rank 4") };
+    let mut s = vec![xcorr::toeplitz_xcorr(&mut g, "s1", &xf[0], &zf[0], *c, TEMPLATE_FEATURES[0].shape[2], *h, *wd)?];
+    for i in 1..5 {
         let spec = TEMPLATE_FEATURES[i];
         s.push(g.depthwise_xcorr(&format!("s{}", i + 1), &xf[i], &zf[i], spec.shape[1], spec.shape[2])?);
     }
