@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use crate::{crop_to_tensor, get_subwindow, Error, Frame, Plan, Result, TemplateFeatures, TrackerConfig};
+use crate::{crop_to_tensor, get_subwindow, Error, Frame, Plan, Result, SearchOutput, TemplateFeatures, TrackerConfig};
 
 /// An axis-aligned box: top-left corner and size, 0-based float pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -152,16 +152,10 @@ impl Tracker {
 
     /// Locate the target in the next frame.
     pub fn track(&mut self, frame: &Frame) -> Result<Prediction> {
-        let cfg = &self.config;
         let st = self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))?;
-        let (fw, fh) = (frame.width() as f64, frame.height() as f64);
-        let mut s_z = self.context_size(st.size);
-        if st.size.0 * st.size.1 > 0.5 * fw * fh {
-            s_z = st.init_sz;
-        }
-        let scale_z = cfg.exemplar_size as f64 / s_z;
-        let s_x = s_z * (cfg.instance_size as f64 / cfg.exemplar_size as f64);
-        let side = cfg.instance_size;
+        let s_z = self.search_context(st, frame.width(), frame.height());
+        let side = self.config.instance_size;
+        let s_x = s_z * (side as f64 / self.config.exemplar_size as f64);
         let t0 = Instant::now();
         let x = crop_to_tensor(
             &get_subwindow(frame, st.center, side, round_half_even(s_x) as usize, st.channel_average),
@@ -170,6 +164,39 @@ impl Tracker {
         let t1 = Instant::now();
         let out = self.plan.search(&x, &st.features)?;
         let t2 = Instant::now();
+        let prediction = self.update(frame.width(), frame.height(), &out)?;
+        self.timings = StepTimings { crop: t1 - t0, network: t2 - t1, post: t2.elapsed() };
+        Ok(prediction)
+    }
+
+    /// `s_z` of the search crop: the context size of the current target, or the template's
+    /// when the target covers more than half of the frame.
+    fn search_context(&self, st: &State, width: usize, height: usize) -> f64 {
+        if st.size.0 * st.size.1 > 0.5 * (width * height) as f64 {
+            st.init_sz
+        } else {
+            self.context_size(st.size)
+        }
+    }
+
+    /// The official post-processing of one search output for a frame of `frame_w`x`frame_h`:
+    /// decode the grid, apply the scale/aspect penalties and the cosine window, pick the best
+    /// cell, smooth and clip the target, and return it. [`Tracker::track`] is crop, network,
+    /// then this; it is public for benchmarks and for callers that run the network themselves.
+    pub fn update(&mut self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<Prediction> {
+        let cfg = &self.config;
+        let st = self.state.as_ref().ok_or_else(|| Error::Input("update called before init".into()))?;
+        let cells = cfg.score_size * cfg.score_size;
+        if out.loc.len() != 4 * cells || out.cls1.len() != 2 * cells || out.cls2.len() != cells {
+            return Err(Error::Input(format!(
+                "search output sizes {}/{}/{} do not fit a {cells}-cell grid",
+                out.loc.len(),
+                out.cls1.len(),
+                out.cls2.len()
+            )));
+        }
+        let (fw, fh) = (frame_w as f64, frame_h as f64);
+        let scale_z = cfg.exemplar_size as f64 / self.search_context(st, frame_w, frame_h);
         let (pred, score) = decode(cfg, &out.loc, &out.cls1, &out.cls2);
 
         let change = |r: f64| r.max(1.0 / (r + 1e-5));
@@ -203,7 +230,6 @@ impl Tracker {
         let st = self.state.as_mut().expect("initialised");
         st.center = (cx, cy);
         st.size = (width, height);
-        self.timings = StepTimings { crop: t1 - t0, network: t2 - t1, post: t2.elapsed() };
         Ok(Prediction {
             bbox: BBox { x: cx - width / 2.0, y: cy - height / 2.0, w: width, h: height },
             score: score[best],
