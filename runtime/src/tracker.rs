@@ -135,10 +135,11 @@ impl Tracker {
         }
         let center = (bbox.x + (bbox.w - 1.0) / 2.0, bbox.y + (bbox.h - 1.0) / 2.0);
         let size = (bbox.w, bbox.h);
-        if self.context_size(size) < 1.0 {
+        let context = self.context_size(size);
+        if context < 1.0 {
             return Err(Error::Input(format!("init box {bbox:?} is too small: its context crop is under one pixel")));
         }
-        let s_z = round_half_even(self.context_size(size));
+        let s_z = round_half_even(context);
         let t0 = Instant::now();
         let channel_average = frame.channel_mean();
         let side = self.config.exemplar_size;
@@ -152,21 +153,26 @@ impl Tracker {
 
     /// Locate the target in the next frame.
     pub fn track(&mut self, frame: &Frame) -> Result<Prediction> {
-        let st = self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))?;
-        let s_z = self.search_context(st, frame.width(), frame.height());
-        let side = self.config.instance_size;
-        let s_x = s_z * (side as f64 / self.config.exemplar_size as f64);
         let t0 = Instant::now();
-        let x = crop_to_tensor(
-            &get_subwindow(frame, st.center, side, round_half_even(s_x) as usize, st.channel_average),
-            side,
-        );
+        let x = self.search_crop(frame)?;
         let t1 = Instant::now();
+        let st = self.state.as_ref().expect("search_crop checked init");
         let out = self.plan.search(&x, &st.features)?;
         let t2 = Instant::now();
         let prediction = self.update(frame.width(), frame.height(), &out)?;
         self.timings = StepTimings { crop: t1 - t0, network: t2 - t1, post: t2.elapsed() };
         Ok(prediction)
+    }
+
+    /// The search graph's input for `frame` around the current target, as the official
+    /// `track` cuts it (float NCHW BGR).
+    pub fn search_crop(&self, frame: &Frame) -> Result<Vec<f32>> {
+        let st = self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))?;
+        let s_z = self.search_context(st, frame.width(), frame.height());
+        let side = self.config.instance_size;
+        let s_x = s_z * (side as f64 / self.config.exemplar_size as f64);
+        let crop = get_subwindow(frame, st.center, side, round_half_even(s_x) as usize, st.channel_average);
+        Ok(crop_to_tensor(&crop, side))
     }
 
     /// `s_z` of the search crop: the context size of the current target, or the template's
@@ -199,7 +205,6 @@ impl Tracker {
         let scale_z = cfg.exemplar_size as f64 / self.search_context(st, frame_w, frame_h);
         let (pred, score) = decode(cfg, &out.loc, &out.cls1, &out.cls2);
 
-        let change = |r: f64| r.max(1.0 / (r + 1e-5));
         let sz = |w: f64, h: f64| {
             let pad = (w + h) * 0.5;
             ((w + pad) * (h + pad)).sqrt()
@@ -210,8 +215,8 @@ impl Tracker {
         let mut pscore = Vec::with_capacity(n);
         for i in 0..n {
             let [_, _, pw, ph] = pred[i];
-            let s_c = change_np(sz(pw, ph) / sz(tw, th), change);
-            let r_c = change_np((st.size.0 / (st.size.1 + 1e-5)) / (pw / (ph + 1e-5)), change);
+            let s_c = change(sz(pw, ph) / sz(tw, th));
+            let r_c = change((st.size.0 / (st.size.1 + 1e-5)) / (pw / (ph + 1e-5)));
             let p = (-(r_c * s_c - 1.0) * cfg.penalty_k).exp();
             penalty.push(p);
             pscore.push(p * score[i] * (1.0 - cfg.window_influence) + self.window[i] * cfg.window_influence);
@@ -238,16 +243,12 @@ impl Tracker {
 }
 
 /// `np.maximum(r, 1/(r+1e-5))`: NaN propagates.
-fn change_np(r: f64, change: impl Fn(f64) -> f64) -> f64 {
-    if r.is_nan() {
+fn change(r: f64) -> f64 {
+    let other = 1.0 / (r + 1e-5);
+    if r.is_nan() || other.is_nan() {
         f64::NAN
     } else {
-        let other = 1.0 / (r + 1e-5);
-        if other.is_nan() {
-            f64::NAN
-        } else {
-            change(r)
-        }
+        r.max(other)
     }
 }
 
@@ -301,7 +302,8 @@ mod tests {
         assert_eq!(py_max(10.0, py_min(f64::NAN, 100.0)), 10.0);
         let h = hanning(11);
         assert!((h[5] - 1.0).abs() < 1e-15 && h[0] == 0.0 && (h[1] - 0.0954915028125263).abs() < 1e-12);
-        assert!(change_np(f64::NAN, |r| r).is_nan());
+        assert!(change(f64::NAN).is_nan());
+        assert_eq!(change(0.5), 1.0 / 0.50001);
     }
 
     #[test]

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use prl_runtime::{crop_to_tensor, get_subwindow, set_threads, BBox, Frame, Plan, Tracker};
+use prl_runtime::{crop_to_tensor, set_threads, BBox, Frame, Plan, Tracker};
 use prl_track::{init_box_from_groundtruth, load_frame, Sequence};
 use serde::Serialize;
 
@@ -119,13 +119,8 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     pb.finish_and_clear();
     template.remove(0);
     // Operator profile of the search graph on a real search crop.
-    let c = (init.x + (init.w - 1.0) / 2.0, init.y + (init.h - 1.0) / 2.0);
-    let ctx = config.context_amount * (init.w + init.h);
-    let s_x = ((init.w + ctx) * (init.h + ctx)).sqrt() * config.instance_size as f64 / config.exemplar_size as f64;
-    let x = crop_to_tensor(
-        &get_subwindow(&frame, c, config.instance_size, s_x.round() as usize, frame.channel_mean()),
-        config.instance_size,
-    );
+    tracker.init(&frame, init)?;
+    let x = tracker.search_crop(&frame)?;
     let z = crop_to_tensor(&vec![128u8; config.exemplar_size * config.exemplar_size * 3], config.exemplar_size);
     let zf = tracker.plan().template(&z)?;
     let prof = tracker.plan().profile_search(&x, &zf, a.runs.min(5))?;
