@@ -139,6 +139,12 @@ fn corrupt_or_mismatched_plans_are_refused() {
     std::fs::write(dir.path().join("search.nnef.tar"), &bytes).unwrap();
     let err = Plan::load(dir.path()).err().unwrap().to_string();
     assert!(err.contains("search.nnef.tar") && err.contains("sha256"), "{err}");
+    let mut manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("plan.json")).unwrap()).unwrap();
+    manifest["optimizer_knobs"] = serde_json::json!({"TRACT_NO_SUCH_KNOB": "1"});
+    std::fs::write(dir.path().join("plan.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
+    let err = Plan::load(dir.path()).err().unwrap().to_string();
+    assert!(err.contains("plan.json") && err.contains("optimizer_knobs"), "{err}");
     std::fs::write(dir.path().join("plan.json"), b"{\"format_version\": 99}").unwrap();
     let err = Plan::load(dir.path()).err().unwrap().to_string();
     assert!(err.contains("plan.json"), "{err}");

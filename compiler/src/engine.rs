@@ -36,7 +36,11 @@ impl OnnxRunner {
             .iter()
             .map(|o| model.outlet_label(*o).map(str::to_string).unwrap_or_else(|| model.node(o.node).name.clone()))
             .collect();
-        let model = model.into_optimized().map_err(err)?;
+        // The kernel choices a compiled plan is optimised with, so both run the same kernels.
+        let knobs = crate::plan::optimizer_knobs();
+        let knobs = tract_onnx::tract_core::knobs::KnobScope::new(knobs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+            .map_err(err)?;
+        let model = knobs.enter(|| model.into_optimized()).map_err(err)?;
         let plan = tp::TypedSimplePlan::new(model).map_err(err)?;
         Ok(OnnxRunner { plan, context: context.to_string(), inputs: inputs.to_vec(), outputs: names })
     }

@@ -46,8 +46,16 @@ pub fn compile(model: &BuiltModel, tracker: &TrackerConfig) -> Result<CompiledPl
         search: info(&model.manifest.search, "search.nnef.tar", &search),
         preprocessing: model.manifest.preprocessing.clone(),
         tracker: tracker.clone(),
+        optimizer_knobs: optimizer_knobs(),
     };
     Ok(CompiledPlan { manifest, template, search })
+}
+
+/// tract knobs a plan is optimised under. Layer 1, a space-to-depth 6x6 convolution with 12
+/// input channels and a 139-wide output, would become tract's direct spatial convolution, which
+/// measured 1.6-1.9x slower here than im2col and a matrix product (docs/performance.md).
+pub(crate) fn optimizer_knobs() -> std::collections::BTreeMap<String, String> {
+    [("TRACT_DISABLE_DIRECT_SPATIAL".to_string(), "true".to_string())].into()
 }
 
 impl CompiledPlan {

@@ -91,4 +91,8 @@ pub struct PlanManifest {
     pub preprocessing: Preprocessing,
     /// Tracker settings.
     pub tracker: TrackerConfig,
+    /// tract knobs (`TRACT_*` names, scopable ones only) in force while the runtime optimises
+    /// the graphs: kernel choices the compiler measured and made for this plan.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub optimizer_knobs: std::collections::BTreeMap<String, String>,
 }

@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use sha2::{Digest, Sha256};
 use tract_nnef::prelude::*;
+use tract_nnef::tract_core::knobs::KnobScope;
 
 use crate::{Error, PlanManifest, Result, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
 
@@ -24,6 +25,14 @@ pub struct Plan {
 /// The template graph's outputs for one target (`zf1..zf5`), kept as tract values.
 #[derive(Clone)]
 pub struct TemplateFeatures(TVec<TValue>);
+
+impl TemplateFeatures {
+    /// Each feature tensor flattened row-major, in the search graph's input order.
+    pub fn to_vecs(&self) -> Result<Vec<Vec<f32>>> {
+        let flat = |v: &TValue| v.try_as_plain_ram().and_then(|v| v.as_slice::<f32>().map(<[f32]>::to_vec));
+        self.0.iter().map(|v| flat(v).map_err(|e| run_err("template", e))).collect()
+    }
+}
 
 /// The search graph's outputs, flattened row-major.
 #[derive(Debug, Clone, PartialEq)]
@@ -70,10 +79,12 @@ impl Plan {
                 ),
             ));
         }
+        let knobs = manifest.optimizer_knobs.iter().map(|(k, v)| (k.as_str(), v.as_str()));
+        let knobs = KnobScope::new(knobs).map_err(|e| bad(&mpath, format!("optimizer_knobs: {e}")))?;
         // The two graphs load and optimise independently: side by side.
         let (template, search) = std::thread::scope(|s| {
-            let t = s.spawn(|| load_graph(&dir, &manifest.template));
-            let search = load_graph(&dir, &manifest.search);
+            let t = s.spawn(|| load_graph(&dir, &manifest.template, &knobs));
+            let search = load_graph(&dir, &manifest.search, &knobs);
             (t.join().expect("template loader panicked"), search)
         });
         let (template, search) = (template?, search?);
@@ -180,7 +191,7 @@ fn run_err(graph: &'static str, e: TractError) -> Error {
     Error::Run { graph, msg: format!("{e:#}").replace('\n', " ") }
 }
 
-fn load_graph(dir: &Path, info: &crate::GraphInfo) -> Result<Runnable> {
+fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<Runnable> {
     let path = dir.join(&info.file);
     let bytes = std::fs::read(&path).map_err(|e| Error::Io { path: path.clone(), source: e })?;
     let bad = |msg: String| Error::Plan { path: path.clone(), msg };
@@ -211,6 +222,6 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo) -> Result<Runnable> {
             )));
         }
     }
-    let model = model.into_optimized().map_err(tract_err)?;
+    let model = knobs.enter(|| model.into_optimized()).map_err(tract_err)?;
     TypedSimplePlan::new(model).map_err(tract_err)
 }

@@ -96,7 +96,7 @@ pub fn template_graph(weights: &Weights) -> Result<Graph> {
     let w = weights.root();
     let mut g = Graph::new("prl_track_template");
     let z = g.input(TEMPLATE_INPUT.name, TEMPLATE_INPUT.shape)?;
-    let mut feats = backbone::backbone(&mut g, &w.pp("backbone"), &z, "zf")?;
+    let mut feats = backbone::backbone(&mut g, &w.pp("backbone"), &z, TEMPLATE_INPUT.shape[3], "zf")?;
     feats[0] = layer1_kernel(&mut g, &feats[0])?;
     for (f, spec) in feats.iter().zip(TEMPLATE_OUTPUTS) {
         g.output(f, spec.shape)?;
@@ -126,7 +126,7 @@ pub fn search_graph(weights: &Weights) -> Result<Graph> {
     let mut g = Graph::new("prl_track_search");
     let x = g.input(SEARCH_INPUT.name, SEARCH_INPUT.shape)?;
     let zf = TEMPLATE_OUTPUTS.iter().map(|s| g.input(s.name, s.shape)).collect::<Result<Vec<_>>>()?;
-    let xf = backbone::backbone(&mut g, &w.pp("backbone"), &x, "xf")?;
+    let xf = backbone::backbone(&mut g, &w.pp("backbone"), &x, SEARCH_INPUT.shape[3], "xf")?;
     // s1 (29x29 kernel) as one matrix product against the template's Toeplitz kernel; the small
     // kernels of s2..s5 as depthwise convolutions.
     let [_, c, h, wd] = SEARCH_STAGES[0].shape else { unreachable!("rank 4") };

@@ -4,25 +4,22 @@
 //!
 //! For channel `c`, `out[c,i,j] = Σ_{u,v} x[c,i+u,j+v]·z[c,u,v]`. With
 //! `R[c,i,(u,col)] = x[c,i+u,col]` and `T[c,(u,col),j] = z[c,u,col-j]` (0 outside the kernel),
-//! `out[c] = R[c]·T[c]`. `T` is built exactly: a product of `z` with a 0/1 shift tensor.
+//! `out[c] = R[c]·T[c]`. `T` is a gather of `z`'s values: exact.
 
 use crate::onnx::{Graph, Value};
 use crate::{Result, Tensor};
 
-/// `T` [C, k·w, w−k+1] of a template feature `z` [1,C,k,k] for search features of width `w`.
+/// `T` [C, k·w, w−k+1] of a template feature `z` [1,C,k,k] for search features of width `w`: a
+/// gather of `z`'s values (a zero appended to each channel fills the places outside the kernel).
 pub fn toeplitz_kernel(g: &mut Graph, name: &str, z: &Value, c: usize, k: usize, w: usize) -> Result<Value> {
     let out = w - k + 1;
-    // shift[v, col, j] = 1 where col − j = v
-    let mut shift = vec![0f32; k * w * out];
-    for v in 0..k {
-        for j in 0..out {
-            shift[(v * w + j + v) * out + j] = 1.0;
-        }
-    }
-    let shift = g.constant(&format!("{name}.shift"), &Tensor::new([k, w * out], shift))?;
-    let rows = g.reshape(&format!("{name}.rows"), z, &[(c * k) as i64, k as i64])?;
-    let t = g.matmul(&format!("{name}.spread"), &rows, &shift)?;
-    g.reshape(name, &t, &[c as i64, (k * w) as i64, out as i64])
+    let zero = (k * k) as i64; // index of the zero appended to each channel
+    let at = |u: usize, col: usize, j: usize| if col >= j && col - j < k { (u * k + col - j) as i64 } else { zero };
+    let idx: Vec<i64> = (0..k).flat_map(|u| (0..w).flat_map(move |col| (0..out).map(move |j| at(u, col, j)))).collect();
+    let flat = g.reshape(&format!("{name}.flat"), z, &[c as i64, (k * k) as i64])?;
+    let zeros = g.constant(&format!("{name}.zeros"), &Tensor::full([c, 1], 0.0))?;
+    let padded = g.concat(&format!("{name}.padded"), &[&flat, &zeros], 1)?;
+    g.gather_nd_indices(name, &padded, 1, &[k * w, out], &idx)
 }
 
 /// The correlation of `x` [1,C,h,w] with a kernel given as [`toeplitz_kernel`]'s `T`:
