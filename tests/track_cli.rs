@@ -106,8 +106,22 @@ fn bench_reports_stages_and_operators() {
         seq.to_str().unwrap(),
         "--json",
         json.to_str().unwrap(),
+        "--save-tensors",
+        dir.path().join("tensors").to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(out.contains("peak resident memory"), "{out}");
+    // The networks' inputs and outputs, for other runtimes: raw f32 of the shapes listed.
+    let index: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("tensors/tensors.json")).unwrap()).unwrap();
+    let names: Vec<&String> = index.as_object().unwrap().keys().collect();
+    assert_eq!(names.len(), 10, "z, x, zt1, zf2..zf5, loc, cls1, cls2: {names:?}");
+    for (name, shape) in index.as_object().unwrap() {
+        let n: u64 = shape.as_array().unwrap().iter().map(|d| d.as_u64().unwrap()).product();
+        let len = std::fs::metadata(dir.path().join(format!("tensors/{name}.f32"))).unwrap().len();
+        assert_eq!(len, 4 * n, "{name}");
+    }
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     let stages: Vec<&str> = report["stages"].as_array().unwrap().iter().map(|s| s["stage"].as_str().unwrap()).collect();
     assert_eq!(stages, ["template network", "crop + resize", "search network", "post-processing", "tracking step"]);

@@ -27,6 +27,15 @@ pub struct Prediction {
     pub score: f64,
 }
 
+/// A target's template crop and the quantities `init` keeps from it.
+struct Exemplar {
+    z: Vec<f32>,
+    center: (f64, f64),
+    size: (f64, f64),
+    s_z: f64,
+    channel_average: [f64; 3],
+}
+
 struct State {
     center: (f64, f64),
     size: (f64, f64),
@@ -123,8 +132,9 @@ impl Tracker {
         ((size.0 + ctx) * (size.1 + ctx)).sqrt()
     }
 
-    /// Start tracking the target in `bbox` (x, y, w, h) on `frame`.
-    pub fn init(&mut self, frame: &Frame, bbox: BBox) -> Result<()> {
+    /// The template graph's input for a target in `bbox` (x, y, w, h) on `frame`, cut as the
+    /// official `init` cuts it (float NCHW BGR), with the target's centre, size and crop side.
+    fn exemplar(&self, frame: &Frame, bbox: BBox) -> Result<Exemplar> {
         let ok = |v: f64| v.is_finite();
         if !(ok(bbox.x) && ok(bbox.y) && ok(bbox.w) && ok(bbox.h)) || bbox.w <= 0.0 || bbox.h <= 0.0 {
             return Err(Error::Input(format!("init box {bbox:?} must have a finite position and a positive size")));
@@ -140,14 +150,32 @@ impl Tracker {
             return Err(Error::Input(format!("init box {bbox:?} is too small: its context crop is under one pixel")));
         }
         let s_z = round_half_even(context);
-        let t0 = Instant::now();
         let channel_average = frame.channel_mean();
         let side = self.config.exemplar_size;
         let z = crop_to_tensor(&get_subwindow(frame, center, side, s_z as usize, channel_average), side);
+        Ok(Exemplar { z, center, size, s_z, channel_average })
+    }
+
+    /// The template graph's input for a target in `bbox` on `frame`, exactly as [`Tracker::init`]
+    /// cuts it (float NCHW BGR, `[1, 3, exemplar_size, exemplar_size]`).
+    pub fn exemplar_crop(&self, frame: &Frame, bbox: BBox) -> Result<Vec<f32>> {
+        Ok(self.exemplar(frame, bbox)?.z)
+    }
+
+    /// Start tracking the target in `bbox` (x, y, w, h) on `frame`.
+    pub fn init(&mut self, frame: &Frame, bbox: BBox) -> Result<()> {
+        let t0 = Instant::now();
+        let e = self.exemplar(frame, bbox)?;
         let t1 = Instant::now();
-        let features = self.plan.template(&z)?;
+        let features = self.plan.template(&e.z)?;
         self.timings = StepTimings { crop: t1 - t0, network: t1.elapsed(), post: Duration::ZERO };
-        self.state = Some(State { center, size, channel_average, init_sz: s_z, features });
+        self.state = Some(State {
+            center: e.center,
+            size: e.size,
+            channel_average: e.channel_average,
+            init_sz: e.s_z,
+            features,
+        });
         Ok(())
     }
 

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use prl_runtime::{crop_to_tensor, set_threads, BBox, Frame, Plan, Tracker};
+use prl_runtime::{set_threads, BBox, Frame, Plan, TemplateFeatures, Tracker};
 use prl_track::{init_box_from_groundtruth, load_frame, Sequence};
 use serde::Serialize;
 
@@ -32,9 +32,14 @@ pub struct BenchArgs {
     /// How many of the slowest operators to list.
     #[arg(long, default_value_t = 12)]
     top: usize,
-    /// Also write the report as JSON.
+    /// Also write the report as JSON (with every timed sample).
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
+    /// Write the networks' inputs and outputs on the benchmarked frame to DIR (raw little-endian
+    /// f32 files and `tensors.json` with their shapes), so another runtime can be timed on
+    /// exactly the same data (see `benches/peers/`).
+    #[arg(long, value_name = "DIR")]
+    save_tensors: Option<PathBuf>,
 }
 
 #[derive(Serialize)]
@@ -42,6 +47,7 @@ struct Stat {
     stage: &'static str,
     median_ms: f64,
     p90_ms: f64,
+    samples_ms: Vec<f64>,
 }
 
 #[derive(Serialize)]
@@ -62,6 +68,8 @@ struct Report {
     frame: String,
     stages: Vec<Stat>,
     fps: f64,
+    plan_load_ms: f64,
+    peak_rss_mb: Option<f64>,
     top_ops: Vec<Op>,
 }
 
@@ -69,7 +77,7 @@ fn stat(stage: &'static str, v: &[Duration]) -> Stat {
     let mut ms: Vec<f64> = v.iter().map(|d| d.as_secs_f64() * 1e3).collect();
     ms.sort_by(f64::total_cmp);
     let at = |q: f64| ms[((ms.len() - 1) as f64 * q).round() as usize];
-    Stat { stage, median_ms: at(0.5), p90_ms: at(0.9) }
+    Stat { stage, median_ms: at(0.5), p90_ms: at(0.9), samples_ms: v.iter().map(|d| d.as_secs_f64() * 1e3).collect() }
 }
 
 fn input(seq: Option<&Path>) -> anyhow::Result<(Frame, BBox, String)> {
@@ -118,12 +126,15 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     }
     pb.finish_and_clear();
     template.remove(0);
-    // Operator profile of the search graph on a real search crop.
+    // Operator profile of the search graph on the real crops.
+    let z = tracker.exemplar_crop(&frame, init)?;
     tracker.init(&frame, init)?;
     let x = tracker.search_crop(&frame)?;
-    let z = crop_to_tensor(&vec![128u8; config.exemplar_size * config.exemplar_size * 3], config.exemplar_size);
     let zf = tracker.plan().template(&z)?;
-    let prof = tracker.plan().profile_search(&x, &zf, a.runs.min(5))?;
+    if let Some(dir) = &a.save_tensors {
+        save_tensors(dir, tracker.plan(), &z, &x, &zf)?;
+    }
+    let prof = if a.top > 0 { tracker.plan().profile_search(&x, &zf, a.runs.min(5))? } else { vec![] };
     let total: f64 = prof.iter().map(|n| n.time.as_secs_f64()).sum();
     let top_ops = prof
         .iter()
@@ -155,6 +166,8 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         frame: frame_name,
         stages,
         fps,
+        plan_load_ms: load.as_secs_f64() * 1e3,
+        peak_rss_mb: super::peak_rss_mb(),
         top_ops,
     };
 
@@ -172,14 +185,54 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         println!("{:<18} {:>10.2} {:>10.2}", s.stage, s.median_ms, s.p90_ms);
     }
     println!("FPS (tracking step): {:.1}", report.fps);
+    if let Some(mb) = report.peak_rss_mb {
+        println!("peak resident memory: {mb:.0} MB");
+    }
+    if report.top_ops.is_empty() {
+        return finish(&a, &report);
+    }
     println!("\nslowest operators of the search graph (tract profile, {:.1} ms in all):", total * 1e3);
     println!("{:>9} {:>6} {:>8}  {:<16} {}", "ms", "share", "GFLOP/s", "op", "node");
     for o in &report.top_ops {
         let gflops = if o.gflops > 0.0 { format!("{:.1}", o.gflops) } else { "-".into() };
         println!("{:>9.2} {:>5.1}% {:>8}  {:<16} {}", o.ms, o.share * 100.0, gflops, o.op, o.name);
     }
+    finish(&a, &report)
+}
+
+fn finish(a: &BenchArgs, report: &Report) -> anyhow::Result<()> {
     if let Some(path) = &a.json {
-        write_atomically(path, &serde_json::to_vec_pretty(&report)?)?;
+        write_atomically(path, &serde_json::to_vec_pretty(report)?)?;
     }
+    Ok(())
+}
+
+/// Write the template and search graphs' inputs and outputs on the benchmarked frame as raw
+/// little-endian f32 files, with their names and shapes in `tensors.json`.
+fn save_tensors(dir: &Path, plan: &Plan, z: &[f32], x: &[f32], zf: &TemplateFeatures) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+    let m = plan.manifest();
+    let out = plan.search(x, zf)?;
+    let mut index = serde_json::Map::new();
+    let mut put = |name: &str, shape: &[usize], data: &[f32]| -> anyhow::Result<()> {
+        anyhow::ensure!(
+            shape.iter().product::<usize>() == data.len(),
+            "{name}: shape {shape:?} does not fit {} values",
+            data.len()
+        );
+        let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+        write_atomically(&dir.join(format!("{name}.f32")), &bytes)?;
+        index.insert(name.to_string(), serde_json::json!(shape));
+        Ok(())
+    };
+    put(&m.template.inputs[0].name, &m.template.inputs[0].shape, z)?;
+    put(&m.search.inputs[0].name, &m.search.inputs[0].shape, x)?;
+    for (t, v) in m.template.outputs.iter().zip(zf.to_vecs()?) {
+        put(&t.name, &t.shape, &v)?;
+    }
+    for (t, v) in m.search.outputs.iter().zip([&out.loc, &out.cls1, &out.cls2]) {
+        put(&t.name, &t.shape, v)?;
+    }
+    write_atomically(&dir.join("tensors.json"), &serde_json::to_vec_pretty(&index)?)?;
     Ok(())
 }

@@ -91,3 +91,20 @@ pub fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> anyhow::Result<
         anyhow::anyhow!("{}: cannot write: {e}", path.display())
     })
 }
+
+/// Peak resident memory of this process so far, in MB (where the OS reports it).
+pub fn peak_rss_mb() -> Option<f64> {
+    #[cfg(unix)]
+    {
+        let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+        // SAFETY: getrusage fills the struct it is given; RUSAGE_SELF is always valid.
+        let ok = unsafe { libc::getrusage(libc::RUSAGE_SELF, usage.as_mut_ptr()) } == 0;
+        // SAFETY: initialised by the successful call above (zeroed otherwise).
+        let kb = unsafe { usage.assume_init() }.ru_maxrss as f64; // kilobytes on Linux
+        ok.then(|| kb * 1024.0 / 1e6)
+    }
+    #[cfg(not(unix))]
+    {
+        None
+    }
+}

@@ -76,6 +76,9 @@ impl Summary {
         if let Some(iou) = self.mean_iou {
             println!("mean IoU with the ground truth: {iou:.3}");
         }
+        if let Some(mb) = super::peak_rss_mb() {
+            println!("peak resident memory: {mb:.0} MB");
+        }
     }
 }
 

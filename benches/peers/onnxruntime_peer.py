@@ -1,0 +1,154 @@
+"""ONNX Runtime against prl on the same template.onnx / search.onnx, interleaved in one run.
+
+For each thread count, rounds alternate between `prl bench` (the compiled plan of the same
+model, through the tracker) and ONNX Runtime's CPU provider on the ONNX files the plan was
+compiled from, fed the very tensors prl used (`prl bench --save-tensors`). The report gives the
+medians over all rounds and the ratio prl / ONNX Runtime (below 1.0: prl is faster).
+Run it through run.sh, which sets ONNX Runtime up in a virtual environment.
+"""
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+import onnxruntime as ort
+
+
+def sh(cmd):
+    r = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    if r.returncode != 0:
+        sys.exit(f"error: {' '.join(cmd)} failed:\n{r.stderr.strip()}")
+    return r.stdout
+
+
+def weights_sha(path):
+    with open(path) as f:
+        return json.load(f).get("weights", {}).get("sha256")
+
+
+def model_and_plan(args, work):
+    """The ONNX model directory and the plan compiled from it (built fresh unless given)."""
+    model, plan = args.model, args.plan
+    if model is None:
+        model = os.path.join(work, "build")
+        sh([args.prl, "build", "--out", model] + args.build_args)
+    if plan is None:
+        plan = os.path.join(work, "plan")
+        sh([args.prl, "compile", "--model", model, "--out", plan])
+    a = weights_sha(os.path.join(model, "manifest.json"))
+    b = weights_sha(os.path.join(plan, "plan.json"))
+    if a != b:
+        sys.exit(f"error: {model} (weights {a}) and {plan} (weights {b}) are not the same model")
+    return model, plan
+
+
+def load_tensors(d):
+    with open(os.path.join(d, "tensors.json")) as f:
+        shapes = json.load(f)
+    return {n: np.fromfile(os.path.join(d, n + ".f32"), dtype="<f4").reshape(s) for n, s in shapes.items()}
+
+
+def session(path, threads):
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
+
+
+def feeds(sess, tensors):
+    return {i.name: tensors[i.name] for i in sess.get_inputs()}
+
+
+def timed(sess, feed, runs):
+    out = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        sess.run(None, feed)
+        out.append((time.perf_counter() - t) * 1e3)
+    return out
+
+
+def agreement(sess, feed, tensors):
+    """Largest difference between ONNX Runtime's and prl's outputs, relative to their range."""
+    worst = 0.0
+    for o, v in zip(sess.get_outputs(), sess.run(None, feed)):
+        ref = tensors[o.name]
+        worst = max(worst, float(np.abs(v - ref).max() / max(np.abs(ref).max(), 1e-12)))
+    return worst
+
+
+def median(v):
+    return statistics.median(v)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--prl", required=True, help="the prl binary")
+    p.add_argument("--model", help="model directory from `prl build` (default: build one)")
+    p.add_argument("--plan", help="plan compiled from --model (default: compile one)")
+    p.add_argument("--threads", default="1,2", help="comma-separated thread counts")
+    p.add_argument("--rounds", type=int, default=5, help="interleaved rounds per thread count")
+    p.add_argument("--runs", type=int, default=10, help="timed runs per round and runtime")
+    p.add_argument("--json", help="also write the report here")
+    p.add_argument("--build-arg", dest="build_args", action="append", default=[],
+                   help="passed to `prl build` when the model is built here (e.g. --build-arg=--random-seed=0)")
+    args = p.parse_args()
+
+    work = tempfile.mkdtemp(prefix="prl-peer-", dir="target" if os.path.isdir("target") else None)
+    model, plan = model_and_plan(args, work)
+    tdir = os.path.join(work, "tensors")
+    sh([args.prl, "bench", "--plan", plan, "--runs", "1", "--top", "0", "--save-tensors", tdir])
+    tensors = load_tensors(tdir)
+    print(f"model {model}, plan {plan}; onnxruntime {ort.__version__}; {args.rounds} rounds x {args.runs} runs")
+
+    report = {"model": model, "plan": plan, "onnxruntime": ort.__version__, "rounds": args.rounds,
+              "runs": args.runs, "results": []}
+    rows = []
+    for threads in [int(t) for t in args.threads.split(",")]:
+        search = session(os.path.join(model, "search.onnx"), threads)
+        template = session(os.path.join(model, "template.onnx"), threads)
+        sf, tf = feeds(search, tensors), feeds(template, tensors)
+        diff = max(agreement(search, sf, tensors), agreement(template, tf, tensors))
+        timed(search, sf, 2)
+        timed(template, tf, 2)
+        prl = {"template network": [], "search network": []}
+        peer = {"template network": [], "search network": []}
+        for r in range(args.rounds):
+            j = os.path.join(work, f"bench-{threads}-{r}.json")
+            sh([args.prl, "bench", "--plan", plan, "--threads", str(threads), "--runs", str(args.runs),
+                "--top", "0", "--json", j])
+            with open(j) as f:
+                for s in json.load(f)["stages"]:
+                    if s["stage"] in prl:
+                        prl[s["stage"]] += s["samples_ms"]
+            peer["template network"] += timed(template, tf, args.runs)
+            peer["search network"] += timed(search, sf, args.runs)
+        for stage in ("search network", "template network"):
+            a, b = median(prl[stage]), median(peer[stage])
+            rows.append((stage, threads, a, b, a / b))
+            report["results"].append({"stage": stage, "threads": threads, "prl_median_ms": a,
+                                      "onnxruntime_median_ms": b, "ratio": a / b,
+                                      "prl_samples_ms": prl[stage], "onnxruntime_samples_ms": peer[stage],
+                                      "max_relative_output_difference": diff})
+        print(f"{threads} thread(s): outputs agree within {diff:.1e} of their range")
+
+    print(f"\n{'graph':<18} {'threads':>7} {'prl ms':>9} {'ORT ms':>9} {'prl/ORT':>8}")
+    for stage, threads, a, b, ratio in rows:
+        print(f"{stage:<18} {threads:>7} {a:>9.1f} {b:>9.1f} {ratio:>8.2f}")
+    if args.json:
+        tmp = args.json + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump(report, f, indent=2)
+        os.replace(tmp, args.json)
+
+
+if __name__ == "__main__":
+    main()
