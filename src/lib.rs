@@ -1,11 +1,15 @@
 //! `prl-track`: the `prl` command-line tool of the PRL-Track deployment toolchain, and the
 //! pieces of it other programs (and the tests) use: reading frame sequences and decoding frames
-//! the way the official code (OpenCV) does.
+//! the way the official code (OpenCV) does, reading benchmark datasets, and scoring trackers as
+//! pysot-toolkit does (OPE).
 
+mod dataset;
 mod frames;
 mod metrics;
+pub mod ope;
 mod sequence;
 
+pub use dataset::{detect, Dataset, Format, Video, UAV123_ATTRIBUTES};
 pub use frames::load_frame;
 pub use metrics::iou;
 pub use sequence::{init_box_from_groundtruth, parse_box, parse_boxes, InputError, Sequence};

@@ -4,6 +4,8 @@ mod bench;
 mod build;
 mod compile;
 mod demo;
+mod eval;
+mod run_benchmark;
 mod track;
 mod verify;
 
@@ -31,6 +33,10 @@ enum Command {
     Track(track::TrackArgs),
     /// Time each stage of a tracking step and profile the search graph's operators.
     Bench(bench::BenchArgs),
+    /// Track every video of a dataset (OPE) and write pysot-format results.
+    RunBenchmark(run_benchmark::RunBenchmarkArgs),
+    /// Score trackers' result folders on a dataset (OPE: success, precision, norm precision).
+    Eval(eval::EvalArgs),
     /// Show the whole pipeline working with no input: seeded network, plan, generated video.
     Demo(demo::DemoArgs),
 }
@@ -66,6 +72,8 @@ pub fn run() -> anyhow::Result<()> {
         Command::Compile(a) => compile::run(a),
         Command::Track(a) => track::run(a),
         Command::Demo(a) => demo::run(a),
+        Command::Eval(a) => eval::run(a),
+        Command::RunBenchmark(a) => run_benchmark::run(a),
         Command::Bench(a) => bench::run(a),
     }
 }

@@ -1,0 +1,201 @@
+//! `prl eval`: score trackers' result folders on a dataset as pysot-toolkit does (OPE).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use clap::Args;
+use prl_track::ope::{evaluate, summarise, Curves, Summary};
+use prl_track::{parse_boxes, Dataset, Format};
+use serde::Serialize;
+
+use super::write_atomically;
+
+#[derive(Args)]
+pub struct EvalArgs {
+    /// Dataset folder.
+    #[arg(long, value_name = "ROOT")]
+    dataset: PathBuf,
+    /// Dataset layout.
+    #[arg(long, value_enum, default_value = "auto")]
+    format: Format,
+    /// Results folder: `<tracker>/<video>.txt` in it, or in its `<dataset name>/` subfolder.
+    #[arg(long, value_name = "DIR")]
+    results: PathBuf,
+    /// Trackers to score (default: every folder of results).
+    #[arg(long, num_args = 1.., value_name = "NAME")]
+    trackers: Vec<String>,
+    /// Also print one table per attribute of the dataset.
+    #[arg(long)]
+    attributes: bool,
+    /// Also print the per-video table.
+    #[arg(long)]
+    per_video: bool,
+    /// Also write every figure and curve as JSON.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+}
+
+/// One tracker's scores.
+#[derive(Serialize)]
+struct TrackerReport {
+    name: String,
+    success: f64,
+    norm_precision: f64,
+    precision: f64,
+    success_curve: Vec<f64>,
+    precision_curve: Vec<f64>,
+    norm_precision_curve: Vec<f64>,
+    videos: BTreeMap<String, Scores>,
+    attributes: BTreeMap<String, Scores>,
+}
+
+#[derive(Serialize, Clone, Copy)]
+struct Scores {
+    success: f64,
+    norm_precision: f64,
+    precision: f64,
+}
+
+impl From<&Summary> for Scores {
+    fn from(s: &Summary) -> Self {
+        Scores { success: s.auc, norm_precision: s.norm_precision_at_02, precision: s.precision_at_20 }
+    }
+}
+
+#[derive(Serialize)]
+struct Report {
+    dataset: String,
+    videos: usize,
+    trackers: Vec<TrackerReport>,
+}
+
+/// The folder holding the trackers' result folders.
+fn results_root(results: &Path, dataset: &str) -> PathBuf {
+    let nested = results.join(dataset);
+    if nested.is_dir() {
+        nested
+    } else {
+        results.to_path_buf()
+    }
+}
+
+fn tracker_names(root: &Path) -> anyhow::Result<Vec<String>> {
+    let rd = std::fs::read_dir(root).with_context(|| format!("{}: cannot read the results folder", root.display()))?;
+    let mut names: Vec<String> = rd
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().is_dir())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    anyhow::ensure!(!names.is_empty(), "{}: no tracker result folders in it", root.display());
+    Ok(names)
+}
+
+/// Score one tracker: its curves per video.
+fn score(dataset: &Dataset, dir: &Path) -> anyhow::Result<BTreeMap<String, Curves>> {
+    let mut out = BTreeMap::new();
+    for v in &dataset.videos {
+        let path = dir.join(format!("{}.txt", v.name));
+        anyhow::ensure!(path.is_file(), "{}: missing (video {} of {})", path.display(), v.name, dataset.name);
+        let result = parse_boxes(&path)?;
+        if result.len() < v.groundtruth.len() {
+            anyhow::bail!(
+                "{}: {} boxes for {} ground-truth frames: a result needs one line per frame",
+                path.display(),
+                result.len(),
+                v.groundtruth.len()
+            );
+        }
+        let curves = evaluate(&v.groundtruth, &result).map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
+        out.insert(v.name.clone(), curves);
+    }
+    Ok(out)
+}
+
+fn table(title: &str, rows: &[(String, Scores)]) {
+    let w = rows.iter().map(|r| r.0.len()).max().unwrap_or(0).max(12) + 2;
+    let header = format!("|{:^w$}|{:^9}|{:^16}|{:^11}|", "Tracker name", "Success", "Norm Precision", "Precision");
+    if !title.is_empty() {
+        println!("{title}");
+    }
+    println!("{}\n{header}\n{}", "-".repeat(header.len()), "-".repeat(header.len()));
+    for (name, s) in rows {
+        println!("|{:^w$}|{:^9.3}|{:^16.3}|{:^11.3}|", name, s.success, s.norm_precision, s.precision);
+    }
+    println!("{}", "-".repeat(header.len()));
+}
+
+pub fn run(a: EvalArgs) -> anyhow::Result<()> {
+    let dataset = Dataset::open(&a.dataset, a.format)?;
+    let root = results_root(&a.results, &dataset.name);
+    let names = if a.trackers.is_empty() { tracker_names(&root)? } else { a.trackers.clone() };
+    let attrs = dataset.attributes();
+    let mut reports = vec![];
+    for name in &names {
+        let per_video = score(&dataset, &root.join(name))?;
+        let all = summarise(per_video.values());
+        let videos = per_video.iter().map(|(v, c)| (v.clone(), Scores::from(&summarise([c])))).collect();
+        let attributes = attrs
+            .iter()
+            .map(|(attr, vids)| (attr.clone(), Scores::from(&summarise(vids.iter().map(|v| &per_video[v])))))
+            .collect();
+        reports.push(TrackerReport {
+            name: name.clone(),
+            success: all.auc,
+            norm_precision: all.norm_precision_at_02,
+            precision: all.precision_at_20,
+            success_curve: all.success.clone(),
+            precision_curve: all.precision.clone(),
+            norm_precision_curve: all.norm_precision.clone(),
+            videos,
+            attributes,
+        });
+    }
+    // pysot's order: success, best first.
+    reports.sort_by(|x, y| y.success.total_cmp(&x.success));
+    println!(
+        "{}: {} videos, {} tracker(s) (OPE, pysot-toolkit definitions)",
+        dataset.name,
+        dataset.videos.len(),
+        reports.len()
+    );
+    let rows: Vec<(String, Scores)> = reports
+        .iter()
+        .map(|r| {
+            (r.name.clone(), Scores { success: r.success, norm_precision: r.norm_precision, precision: r.precision })
+        })
+        .collect();
+    table("", &rows);
+    if a.attributes {
+        for (attr, vids) in &attrs {
+            let mut rows: Vec<(String, Scores)> =
+                reports.iter().map(|r| (r.name.clone(), r.attributes[attr])).collect();
+            rows.sort_by(|x, y| y.1.success.total_cmp(&x.1.success));
+            table(&format!("\n{attr} ({} videos)", vids.len()), &rows);
+        }
+        if attrs.is_empty() {
+            println!("\n{} gives no attributes", dataset.name);
+        }
+    }
+    if a.per_video {
+        println!("\n{:<24}{}", "video", reports.iter().map(|r| format!("{:>22}", r.name)).collect::<String>());
+        println!(
+            "{:<24}{}",
+            "",
+            reports.iter().map(|_| format!("{:>11}{:>11}", "success", "prec@20")).collect::<String>()
+        );
+        for v in &dataset.videos {
+            let cells: String = reports
+                .iter()
+                .map(|r| format!("{:>11.3}{:>11.3}", r.videos[&v.name].success, r.videos[&v.name].precision))
+                .collect();
+            println!("{:<24}{cells}", v.name);
+        }
+    }
+    if let Some(path) = &a.json {
+        let report = Report { dataset: dataset.name.clone(), videos: dataset.videos.len(), trackers: reports };
+        write_atomically(path, &serde_json::to_vec_pretty(&report)?)?;
+    }
+    Ok(())
+}
