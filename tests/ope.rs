@@ -127,6 +127,8 @@ fn prl_eval_prints_the_pysot_table_and_json() {
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .args(["eval", "--dataset", SEQS, "--results", results.to_str().unwrap(), "--per-video", "--json"])
         .arg(&json)
+        .arg("--plots")
+        .arg(tmp.path().join("plots"))
         .output()
         .unwrap();
     let out = String::from_utf8_lossy(&o.stdout);
@@ -140,6 +142,14 @@ fn prl_eval_prints_the_pysot_table_and_json() {
     assert_eq!(synth["name"], "synthetic");
     assert!((synth["success"].as_f64().unwrap() - 0.486826205882471).abs() < 1e-12);
     assert_eq!(synth["success_curve"].as_array().unwrap().len(), 21);
+    for kind in ["success", "precision", "norm_precision"] {
+        let svg = std::fs::read_to_string(tmp.path().join(format!("plots/uav123_10fps_{kind}.svg"))).unwrap();
+        assert!(svg.contains("perfect [") && svg.contains("synthetic ["), "{kind}: labelled curves");
+        let png = image::open(tmp.path().join(format!("plots/uav123_10fps_{kind}.png"))).unwrap();
+        assert_eq!((png.width(), png.height()), (640, 480));
+    }
+    let svg = std::fs::read_to_string(tmp.path().join("plots/uav123_10fps_success.svg")).unwrap();
+    assert!(svg.contains("synthetic [0.487]"), "AUC in the legend");
 
     // A result with a missing line is refused, naming the file.
     let short = results.join("synthetic/wakeboard7.txt");
@@ -153,4 +163,48 @@ fn prl_eval_prints_the_pysot_table_and_json() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
     assert!(err.contains("wakeboard7.txt") && err.contains("ground-truth frames"), "{err}");
+}
+
+#[test]
+fn attributes_give_their_own_tables_and_plots() {
+    // A pysot JSON over the shared sequences' ground truth, with attributes.
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("UAVX");
+    std::fs::create_dir_all(&root).unwrap();
+    let mut doc = serde_json::Map::new();
+    for (name, attrs) in [
+        ("building4", vec!["Scale Variation"]),
+        ("wakeboard10", vec!["Scale Variation", "Partial Occlusion"]),
+        ("wakeboard7", vec![]),
+    ] {
+        let gt = gt_of(name);
+        let imgs: Vec<String> = (1..=gt.len()).map(|i| format!("{name}/img/{i:06}.jpg")).collect();
+        let rects: Vec<Vec<f64>> = gt.iter().map(|b| b.to_vec()).collect();
+        doc.insert(name.into(), serde_json::json!({"video_dir": name, "init_rect": rects[0], "img_names": imgs, "gt_rect": rects, "attr": attrs}));
+    }
+    std::fs::write(root.join("UAVX.json"), serde_json::to_vec(&doc).unwrap()).unwrap();
+    let results = write_results(&tmp.path().join("results").join("UAVX"));
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_prl"))
+        .args(["eval", "--dataset", root.to_str().unwrap(), "--results", results.parent().unwrap().to_str().unwrap()])
+        .args(["--attributes", "--plots"])
+        .arg(tmp.path().join("plots"))
+        .output()
+        .unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("Scale Variation (2 videos)") && out.contains("Partial Occlusion (1 videos)"), "{out}");
+    // Partial Occlusion is wakeboard10 alone: its figures are that video's.
+    let c = evaluate(&gt_of("wakeboard10"), &synthetic(&gt_of("wakeboard10"))).unwrap();
+    let row = format!(
+        "|{:^14}|{:^9.3}|{:^16.3}|{:^11.3}|",
+        "synthetic",
+        c.auc(),
+        c.norm_precision_at_02(),
+        c.precision_at_20()
+    );
+    let po = &out[out.find("Partial Occlusion").unwrap()..];
+    assert!(po.contains(&row), "{row}\n{po}");
+    for f in ["UAVX_success_partial_occlusion.svg", "UAVX_precision_scale_variation.png", "UAVX_success.png"] {
+        assert!(tmp.path().join("plots").join(f).is_file(), "{f}");
+    }
 }

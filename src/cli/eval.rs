@@ -9,6 +9,7 @@ use prl_track::ope::{evaluate, summarise, Curves, Summary};
 use prl_track::{parse_boxes, Dataset, Format};
 use serde::Serialize;
 
+use super::plots::{plot, Curve, Kind};
 use super::write_atomically;
 
 #[derive(Args)]
@@ -31,6 +32,10 @@ pub struct EvalArgs {
     /// Also print the per-video table.
     #[arg(long)]
     per_video: bool,
+    /// Write success and precision plots (PNG and SVG) to DIR, per attribute too with
+    /// `--attributes`.
+    #[arg(long, value_name = "DIR")]
+    plots: Option<PathBuf>,
     /// Also write every figure and curve as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
@@ -48,6 +53,8 @@ struct TrackerReport {
     norm_precision_curve: Vec<f64>,
     videos: BTreeMap<String, Scores>,
     attributes: BTreeMap<String, Scores>,
+    #[serde(skip)]
+    attribute_curves: BTreeMap<String, Summary>,
 }
 
 #[derive(Serialize, Clone, Copy)]
@@ -136,10 +143,9 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         let per_video = score(&dataset, &root.join(name))?;
         let all = summarise(per_video.values());
         let videos = per_video.iter().map(|(v, c)| (v.clone(), Scores::from(&summarise([c])))).collect();
-        let attributes = attrs
-            .iter()
-            .map(|(attr, vids)| (attr.clone(), Scores::from(&summarise(vids.iter().map(|v| &per_video[v])))))
-            .collect();
+        let attribute_curves: BTreeMap<String, Summary> =
+            attrs.iter().map(|(attr, vids)| (attr.clone(), summarise(vids.iter().map(|v| &per_video[v])))).collect();
+        let attributes = attribute_curves.iter().map(|(a, s)| (a.clone(), Scores::from(s))).collect();
         reports.push(TrackerReport {
             name: name.clone(),
             success: all.auc,
@@ -150,6 +156,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
             norm_precision_curve: all.norm_precision.clone(),
             videos,
             attributes,
+            attribute_curves,
         });
     }
     // pysot's order: success, best first.
@@ -193,9 +200,61 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
             println!("{:<24}{cells}", v.name);
         }
     }
+    if let Some(dir) = &a.plots {
+        write_plots(dir, &dataset.name, &reports, a.attributes.then_some(&attrs))?;
+        println!("plots: {}", dir.display());
+    }
     if let Some(path) = &a.json {
         let report = Report { dataset: dataset.name.clone(), videos: dataset.videos.len(), trackers: reports };
         write_atomically(path, &serde_json::to_vec_pretty(&report)?)?;
     }
     Ok(())
+}
+
+/// Success, precision and normalised precision plots of the whole dataset (and of each attribute).
+fn write_plots(
+    dir: &Path,
+    dataset: &str,
+    reports: &[TrackerReport],
+    attrs: Option<&BTreeMap<String, Vec<String>>>,
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    let sets =
+        [(Kind::Success, "success", "Success plots of OPE"), (Kind::Precision, "precision", "Precision plots of OPE")];
+    let curves = |s: &dyn Fn(&TrackerReport) -> Option<(f64, Vec<f64>)>| -> Vec<(String, f64, Vec<f64>)> {
+        reports.iter().filter_map(|r| s(r).map(|(score, v)| (r.name.clone(), score, v))).collect()
+    };
+    let draw = |stem: String, title: String, kind: Kind, data: Vec<(String, f64, Vec<f64>)>| -> anyhow::Result<()> {
+        let mut c: Vec<Curve> = data.iter().map(|(n, s, v)| Curve { name: n, score: *s, values: v }).collect();
+        plot(&dir.join(stem), &title, kind, &mut c)
+    };
+    for (kind, file, title) in sets {
+        let pick = |r: &TrackerReport| -> Option<(f64, Vec<f64>)> {
+            Some(match kind {
+                Kind::Success => (r.success, r.success_curve.clone()),
+                _ => (r.precision, r.precision_curve.clone()),
+            })
+        };
+        draw(format!("{dataset}_{file}"), format!("{title} on {dataset}"), kind, curves(&pick))?;
+        for attr in attrs.into_iter().flat_map(|a| a.keys()) {
+            let pick = |r: &TrackerReport| -> Option<(f64, Vec<f64>)> {
+                let s = r.attribute_curves.get(attr)?;
+                Some(match kind {
+                    Kind::Success => (s.auc, s.success.clone()),
+                    _ => (s.precision_at_20, s.precision.clone()),
+                })
+            };
+            let slug: String =
+                attr.chars().map(|c| if c.is_ascii_alphanumeric() { c.to_ascii_lowercase() } else { '_' }).collect();
+            draw(format!("{dataset}_{file}_{slug}"), format!("{title} - {attr}"), kind, curves(&pick))?;
+        }
+    }
+    let norm: Vec<(String, f64, Vec<f64>)> =
+        reports.iter().map(|r| (r.name.clone(), r.norm_precision, r.norm_precision_curve.clone())).collect();
+    draw(
+        format!("{dataset}_norm_precision"),
+        format!("Normalized precision plots of OPE on {dataset}"),
+        Kind::NormPrecision,
+        norm,
+    )
 }

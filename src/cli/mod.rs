@@ -5,6 +5,7 @@ mod build;
 mod compile;
 mod demo;
 mod eval;
+mod plots;
 mod run_benchmark;
 mod track;
 mod verify;
