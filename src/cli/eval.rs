@@ -211,6 +211,9 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A tracker's name, score and curve in a plot.
+type Series = (String, f64, Vec<f64>);
+
 /// Success, precision and normalised precision plots of the whole dataset (and of each attribute).
 fn write_plots(
     dir: &Path,
@@ -221,10 +224,10 @@ fn write_plots(
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     let sets =
         [(Kind::Success, "success", "Success plots of OPE"), (Kind::Precision, "precision", "Precision plots of OPE")];
-    let curves = |s: &dyn Fn(&TrackerReport) -> Option<(f64, Vec<f64>)>| -> Vec<(String, f64, Vec<f64>)> {
+    let curves = |s: &dyn Fn(&TrackerReport) -> Option<(f64, Vec<f64>)>| -> Vec<Series> {
         reports.iter().filter_map(|r| s(r).map(|(score, v)| (r.name.clone(), score, v))).collect()
     };
-    let draw = |stem: String, title: String, kind: Kind, data: Vec<(String, f64, Vec<f64>)>| -> anyhow::Result<()> {
+    let draw = |stem: String, title: String, kind: Kind, data: Vec<Series>| -> anyhow::Result<()> {
         let mut c: Vec<Curve> = data.iter().map(|(n, s, v)| Curve { name: n, score: *s, values: v }).collect();
         plot(&dir.join(stem), &title, kind, &mut c)
     };
@@ -249,7 +252,7 @@ fn write_plots(
             draw(format!("{dataset}_{file}_{slug}"), format!("{title} - {attr}"), kind, curves(&pick))?;
         }
     }
-    let norm: Vec<(String, f64, Vec<f64>)> =
+    let norm: Vec<Series> =
         reports.iter().map(|r| (r.name.clone(), r.norm_precision, r.norm_precision_curve.clone())).collect();
     draw(
         format!("{dataset}_norm_precision"),
