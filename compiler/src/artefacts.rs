@@ -55,6 +55,10 @@ pub struct Manifest {
     pub search: GraphInfo,
     /// How input crops must be prepared.
     pub preprocessing: Preprocessing,
+    /// The ablation variant, when not the published network (`baseline`, `flp`, `ar-flp`,
+    /// `sr-flp`): for latency studies only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub variant: Option<String>,
 }
 
 /// A built model in memory: the two ONNX graphs and their manifest.
@@ -75,8 +79,13 @@ pub const MODEL_MANIFEST: &str = "manifest.json";
 
 /// Build the network from `source` into ONNX graphs and their manifest.
 pub fn build_model(source: &WeightsSource) -> Result<BuiltModel> {
+    build_model_variant(source, net::Variant::Full)
+}
+
+/// Build an ablation variant of the network (see [`net::Variant`]).
+pub fn build_model_variant(source: &WeightsSource, variant: net::Variant) -> Result<BuiltModel> {
     let weights = source.load()?;
-    let network = net::build_network(&weights)?;
+    let network = net::build_variant(&weights, variant)?;
     let weights_info = match (weights.checkpoint(), weights.seed()) {
         (Some(c), _) => WeightsInfo {
             kind: "checkpoint".into(),
@@ -121,6 +130,7 @@ pub fn build_model(source: &WeightsSource) -> Result<BuiltModel> {
             net::SEARCH_OUTPUTS.iter().map(tensor_info).collect(),
         ),
         preprocessing: preprocessing(),
+        variant: (variant != net::Variant::Full).then(|| variant.name().to_string()),
     };
     Ok(BuiltModel { manifest, template, search, unused_keys: weights.unused_keys() })
 }

@@ -20,7 +20,9 @@ mod tensor;
 mod verify;
 mod weights;
 
-pub use artefacts::{build_model, preprocessing, BuiltModel, Manifest, WeightsSource, MODEL_MANIFEST};
+pub use artefacts::{
+    build_model, build_model_variant, preprocessing, BuiltModel, Manifest, WeightsSource, MODEL_MANIFEST,
+};
 pub use engine::{NetworkRunner, OnnxRunner};
 pub use error::{Error, Result};
 pub use plan::{compile, CompiledPlan, TRACT_VERSION};

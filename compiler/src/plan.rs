@@ -46,6 +46,7 @@ pub fn compile(model: &BuiltModel, tracker: &TrackerConfig) -> Result<CompiledPl
         search: info(&model.manifest.search, "search.nnef.tar", &search),
         preprocessing: model.manifest.preprocessing.clone(),
         tracker: tracker.clone(),
+        variant: model.manifest.variant.clone(),
         optimizer_knobs: optimizer_knobs(),
     };
     Ok(CompiledPlan { manifest, template, search })

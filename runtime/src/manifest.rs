@@ -91,6 +91,10 @@ pub struct PlanManifest {
     pub preprocessing: Preprocessing,
     /// Tracker settings.
     pub tracker: TrackerConfig,
+    /// The ablation variant of the network, when not the published one (`baseline`, `flp`,
+    /// `ar-flp`, `sr-flp`): such plans are for latency studies.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub variant: Option<String>,
     /// tract knobs (`TRACT_*` names, scopable ones only) in force while the runtime optimises
     /// the graphs: kernel choices the compiler measured and made for this plan.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]

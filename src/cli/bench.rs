@@ -59,6 +59,28 @@ struct Op {
     gflops: f64,
 }
 
+/// The network module a node of the search graph belongs to, from its name.
+fn module_of(node: &str) -> &'static str {
+    let head = node.split(['_', '.']).next().unwrap_or("");
+    match head {
+        "backbone" | "x" | "xf1" | "xf2" | "xf3" | "xf4" | "xf5" => "backbone",
+        "s1" => "s1 correlation (29x29)",
+        "s2" | "s3" | "s4" | "s5" => "s2..s5 correlations",
+        "ar" => "AR",
+        "sr1" | "sr2" => "SR1 + SR2",
+        "hmg" => "HMG (fine representation learning)",
+        "grader" | "loc" | "cls1" | "cls2" => "heads",
+        _ => "inputs and other",
+    }
+}
+
+#[derive(Serialize)]
+struct Module {
+    module: &'static str,
+    ms: f64,
+    share: f64,
+}
+
 #[derive(Serialize)]
 struct Report {
     plan: String,
@@ -71,6 +93,7 @@ struct Report {
     plan_load_ms: f64,
     peak_rss_mb: Option<f64>,
     top_ops: Vec<Op>,
+    modules: Vec<Module>,
 }
 
 fn stat(stage: &'static str, v: &[Duration]) -> Stat {
@@ -100,7 +123,10 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let t = Instant::now();
     let plan = Plan::load(&a.plan)?;
     let load = t.elapsed();
-    let precision = plan.manifest().precision.clone();
+    let precision = match &plan.manifest().variant {
+        Some(v) => format!("{}, variant {v}", plan.manifest().precision),
+        None => plan.manifest().precision.clone(),
+    };
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config.clone());
     let (mut template, mut crop, mut search, mut post, mut step) = (vec![], vec![], vec![], vec![], vec![]);
@@ -150,6 +176,16 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
             }
         })
         .collect();
+    let mut modules: Vec<Module> = vec![];
+    for n in &prof {
+        let (m, secs) = (module_of(&n.name), n.time.as_secs_f64());
+        match modules.iter_mut().find(|x| x.module == m) {
+            Some(x) => x.ms += secs * 1e3,
+            None => modules.push(Module { module: m, ms: secs * 1e3, share: 0.0 }),
+        }
+    }
+    modules.iter_mut().for_each(|m| m.share = m.ms / (total * 1e3));
+    modules.sort_by(|a, b| b.ms.total_cmp(&a.ms));
     let stages = vec![
         stat("template network", &template),
         stat("crop + resize", &crop),
@@ -169,6 +205,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         plan_load_ms: load.as_secs_f64() * 1e3,
         peak_rss_mb: super::peak_rss_mb(),
         top_ops,
+        modules,
     };
 
     println!(
@@ -196,6 +233,10 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     for o in &report.top_ops {
         let gflops = if o.gflops > 0.0 { format!("{:.1}", o.gflops) } else { "-".into() };
         println!("{:>9.2} {:>5.1}% {:>8}  {:<16} {}", o.ms, o.share * 100.0, gflops, o.op, o.name);
+    }
+    println!("\nsearch graph time by module (same profile):");
+    for m in &report.modules {
+        println!("{:>9.2} {:>5.1}%  {}", m.ms, m.share * 100.0, m.module);
     }
     finish(&a, &report)
 }

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use prl_compiler::{build_model, WeightsSource};
+use prl_compiler::WeightsSource;
 
 use super::{spinner, WeightsArgs};
 
@@ -14,6 +14,11 @@ pub const DEFAULT_CHECKPOINT: &str = "../shared/fixtures/prl-golden-v1/checkpoin
 pub struct BuildArgs {
     #[command(flatten)]
     weights: WeightsArgs,
+    /// Ablation variant of the paper's Table II (`baseline`, `flp`, `ar-flp`, `sr-flp`, `full`):
+    /// which of AR, SR and the fine representation learning (HMG) the search graph keeps. Left-out
+    /// modules become a seeded 3x3 stride-2 convolution; for latency studies (`prl bench`).
+    #[arg(long, default_value = "full", value_parser = super::parse_variant)]
+    variant: prl_compiler::net::Variant,
     /// Output directory.
     #[arg(long, default_value = "models/prl-track/build")]
     out: PathBuf,
@@ -25,7 +30,7 @@ pub struct BuildArgs {
 pub fn run(a: BuildArgs) -> anyhow::Result<()> {
     let source = a.weights.source_or(default_source);
     let pb = spinner(&format!("building PRL-Track from {}", describe(&source)));
-    let report = build_model(&source).and_then(|m| m.write(&a.out).map(|_| m));
+    let report = prl_compiler::build_model_variant(&source, a.variant).and_then(|m| m.write(&a.out).map(|_| m));
     pb.finish_and_clear();
     let report = report?;
     let m = &report.manifest;

@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use clap::Args;
-use prl_compiler::{build_model, compile, BuiltModel};
+use prl_compiler::{compile, BuiltModel};
 use prl_runtime::TrackerConfig;
 
 use super::build::{default_source, describe};
@@ -20,6 +20,11 @@ pub struct CompileArgs {
     model: Option<PathBuf>,
     #[command(flatten)]
     weights: WeightsArgs,
+    /// Ablation variant of the paper's Table II (`baseline`, `flp`, `ar-flp`, `sr-flp`, `full`):
+    /// which of AR, SR and the fine representation learning (HMG) the search graph keeps. Left-out
+    /// modules become a seeded 3x3 stride-2 convolution; for latency studies (`prl bench`).
+    #[arg(long, default_value = "full", value_parser = super::parse_variant, conflicts_with = "model")]
+    variant: prl_compiler::net::Variant,
     /// Tracker settings to store in the plan (TOML).
     #[arg(long, value_name = "FILE", default_value = DEFAULT_TRACKER_TOML)]
     tracker: PathBuf,
@@ -44,7 +49,7 @@ pub fn run(a: CompileArgs) -> anyhow::Result<()> {
         None => {
             let source = a.weights.source_or(default_source);
             let pb = spinner(&format!("building PRL-Track from {}", describe(&source)));
-            let m = build_model(&source);
+            let m = prl_compiler::build_model_variant(&source, a.variant);
             pb.finish_and_clear();
             m?
         }

@@ -117,3 +117,12 @@ pub fn peak_rss_mb() -> Option<f64> {
         None
     }
 }
+
+/// `--variant` values: the ablation variants of the paper's Table II.
+pub fn parse_variant(s: &str) -> Result<prl_compiler::net::Variant, String> {
+    use prl_compiler::net::Variant;
+    Variant::parse(s).ok_or_else(|| {
+        let names: Vec<&str> = Variant::ALL.iter().map(|v| v.name()).collect();
+        format!("`{s}` is not a variant; expected one of {}", names.join(", "))
+    })
+}

@@ -6,10 +6,12 @@ mod heads;
 mod hmg;
 mod layers;
 mod regulators;
+mod variant;
 mod xcorr;
 
 pub use hmg::{hierarchical_attention, sincos_pos_embed};
 pub use regulators::{lip2d, nearest_indices, upsample_nearest};
+pub use variant::Variant;
 pub use xcorr::{toeplitz_kernel, toeplitz_xcorr};
 
 use crate::onnx::Graph;
@@ -88,7 +90,12 @@ pub struct Network {
 
 /// Build both graphs from `weights` (keys as in the official checkpoint).
 pub fn build_network(weights: &Weights) -> Result<Network> {
-    Ok(Network { template: template_graph(weights)?, search: search_graph(weights)? })
+    build_variant(weights, Variant::Full)
+}
+
+/// Build both graphs of an ablation variant (the template graph is the same for all).
+pub fn build_variant(weights: &Weights, variant: Variant) -> Result<Network> {
+    Ok(Network { template: template_graph(weights)?, search: search_variant(weights, variant)? })
 }
 
 /// The template branch: the backbone on the exemplar crop.
@@ -122,6 +129,11 @@ pub fn kernel_graph() -> Result<Graph> {
 /// The search branch: backbone on the search crop, cross-correlations with the template
 /// features, AR, SR1, SR2, HMG and heads.
 pub fn search_graph(weights: &Weights) -> Result<Graph> {
+    search_variant(weights, Variant::Full)
+}
+
+/// The search branch of an ablation variant (see [`Variant`]).
+pub fn search_variant(weights: &Weights, variant: Variant) -> Result<Graph> {
     let w = weights.root();
     let mut g = Graph::new("prl_track_search");
     let x = g.input(SEARCH_INPUT.name, SEARCH_INPUT.shape)?;
@@ -136,10 +148,22 @@ pub fn search_graph(weights: &Weights) -> Result<Graph> {
         s.push(g.depthwise_xcorr(&format!("s{}", i + 1), &xf[i], &zf[i], spec.shape[1], spec.shape[2])?);
     }
     let gw = w.pp("grader");
-    let ar = regulators::appearance_regulator(&mut g, &gw.pp("ar"), "ar", &s[2], &s[0], &s[1])?;
-    let sr1 = regulators::semantic_regulator(&mut g, &gw.pp("sr1"), "sr1", &s[3], 384, &ar, 30.0)?;
-    let sr2 = regulators::semantic_regulator(&mut g, &gw.pp("sr2"), "sr2", &s[4], 256, &sr1, 15.0)?;
-    let h = hmg::hmg(&mut g, &gw.pp("vit"), "hmg", [&ar, &sr1, &sr2])?;
+    let ar = if variant.ar() {
+        regulators::appearance_regulator(&mut g, &gw.pp("ar"), "ar", &s[2], &s[0], &s[1])?
+    } else {
+        variant::stand_in(&mut g, "ar", &s[2], 384)?
+    };
+    let (sr1, sr2) = if variant.sr() {
+        let sr1 = regulators::semantic_regulator(&mut g, &gw.pp("sr1"), "sr1", &s[3], 384, &ar, 30.0)?;
+        let sr2 = regulators::semantic_regulator(&mut g, &gw.pp("sr2"), "sr2", &s[4], 256, &sr1, 15.0)?;
+        (sr1, sr2)
+    } else {
+        (variant::stand_in(&mut g, "sr1", &s[3], 384)?, variant::stand_in(&mut g, "sr2", &s[4], 256)?)
+    };
+    let h = match variant {
+        Variant::Baseline => sr2, // the heads on the last correlation map, through its stand-in
+        _ => hmg::hmg(&mut g, &gw.pp("vit"), "hmg", [&ar, &sr1, &sr2])?,
+    };
     let outs = heads::heads(&mut g, &gw, &h)?;
     for (o, spec) in outs.iter().zip(SEARCH_OUTPUTS) {
         g.output(o, spec.shape)?;
