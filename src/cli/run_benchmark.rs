@@ -32,9 +32,10 @@ pub struct RunBenchmarkArgs {
     /// Tracker name for the results folder (default: the plan folder's name).
     #[arg(long)]
     tracker: Option<String>,
-    /// Videos tracked at once (default 1; each gets its own copy of the plan).
-    #[arg(long, default_value_t = 1)]
-    jobs: usize,
+    /// Videos tracked at once, each with its own copy of the plan (default: one per core, which
+    /// scales better than threads inside one video).
+    #[arg(long)]
+    jobs: Option<usize>,
     /// Threads per job for the network (default: the cores divided among the jobs).
     #[arg(long)]
     threads: Option<usize>,
@@ -90,7 +91,7 @@ fn track_video(
 }
 
 pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
-    anyhow::ensure!(a.jobs >= 1, "--jobs must be at least 1");
+    anyhow::ensure!(a.jobs != Some(0), "--jobs must be at least 1");
     let dataset = Dataset::open(&a.dataset, a.format)?;
     let tracker_name = a.tracker.clone().unwrap_or_else(|| {
         a.plan
@@ -117,7 +118,7 @@ pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
         return Ok(());
     }
     let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
-    let jobs = a.jobs.min(todo.len());
+    let jobs = a.jobs.unwrap_or(cores).min(todo.len());
     set_threads(a.threads.unwrap_or((cores / jobs).max(1)));
     let frames: usize = todo.iter().map(|v| v.groundtruth.len()).sum();
     let progress = indicatif::ProgressBar::new(frames as u64);
