@@ -29,7 +29,8 @@ pub struct RunBenchmarkArgs {
     /// Results go to `DIR/<dataset>/<tracker>/<video>.txt`.
     #[arg(long, value_name = "DIR", default_value = "results")]
     results: PathBuf,
-    /// Tracker name for the results folder (default: the plan folder's name).
+    /// Tracker name for the results folder (default: `prl-track-<precision>`, with the variant
+    /// when the plan is an ablation variant).
     #[arg(long)]
     tracker: Option<String>,
     /// Videos tracked at once, each with its own copy of the plan (default: one per core, which
