@@ -74,6 +74,22 @@ fn shards_merge_resume_skips_and_eval_scores() {
     let e = ok(&prl(&["eval", "--dataset", data.to_str().unwrap(), "--results", results.to_str().unwrap()]));
     assert!(e.contains("UAV10: 3 videos, 1 tracker(s)") && e.contains("|     prl      |"), "{e}");
 
+    // Without --tracker the folder is named after the plan: prl-track-<precision>.
+    let fresh = t.path().join("fresh");
+    let o = prl(&[
+        "run-benchmark",
+        "--plan",
+        plan.to_str().unwrap(),
+        "--dataset",
+        data.to_str().unwrap(),
+        "--results",
+        fresh.to_str().unwrap(),
+        "--shard",
+        "1/3",
+    ]);
+    let out = ok(&o);
+    assert!(fresh.join("UAV10/prl-track-fp32/building4.txt").is_file(), "{out}");
+
     // Bad arguments are one-line errors.
     let o = run(&["--shard", "3/2"]);
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("K/N"));
