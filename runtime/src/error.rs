@@ -6,8 +6,14 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// A file could not be read.
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {err}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// What the OS said (in the message, not a separate source, so a one-line report
+        /// says it once).
+        err: std::io::Error,
+    },
     /// The plan is malformed, corrupt, or not one this runtime can run.
     #[error("{path}: {msg}")]
     Plan { path: PathBuf, msg: String },

@@ -66,7 +66,7 @@ impl Plan {
     pub fn load(dir: impl AsRef<Path>) -> Result<Plan> {
         let dir = dir.as_ref().to_path_buf();
         let mpath = dir.join(PLAN_MANIFEST);
-        let bytes = std::fs::read(&mpath).map_err(|e| Error::Io { path: mpath.clone(), source: e })?;
+        let bytes = std::fs::read(&mpath).map_err(|e| Error::Io { path: mpath.clone(), err: e })?;
         let bad = |path: &Path, msg: String| Error::Plan { path: path.to_path_buf(), msg };
         let manifest: PlanManifest =
             serde_json::from_slice(&bytes).map_err(|e| bad(&mpath, format!("not a plan manifest: {e}")))?;
@@ -193,7 +193,7 @@ fn run_err(graph: &'static str, e: TractError) -> Error {
 
 fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<Runnable> {
     let path = dir.join(&info.file);
-    let bytes = std::fs::read(&path).map_err(|e| Error::Io { path: path.clone(), source: e })?;
+    let bytes = std::fs::read(&path).map_err(|e| Error::Io { path: path.clone(), err: e })?;
     let bad = |msg: String| Error::Plan { path: path.clone(), msg };
     let digest: String = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
     if digest != info.sha256 {

@@ -94,19 +94,15 @@ fn track_video(
 pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.jobs != Some(0), "--jobs must be at least 1");
     let dataset = Dataset::open(&a.dataset, a.format)?;
-    let tracker_name = match &a.tracker {
-        Some(t) => t.clone(),
-        None => {
-            let path = a.plan.join(prl_runtime::PLAN_MANIFEST);
-            let bytes =
-                std::fs::read(&path).with_context(|| format!("{}: cannot read the plan manifest", path.display()))?;
-            let m: prl_runtime::PlanManifest =
-                serde_json::from_slice(&bytes).with_context(|| format!("{}: not a plan manifest", path.display()))?;
-            match m.variant {
-                Some(v) => format!("prl-track-{}-{v}", m.precision),
-                None => format!("prl-track-{}", m.precision),
-            }
-        }
+    // The plan's manifest, read before anything is written: a bad plan leaves no folder behind.
+    let path = a.plan.join(prl_runtime::PLAN_MANIFEST);
+    let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the plan manifest", path.display()))?;
+    let manifest: prl_runtime::PlanManifest =
+        serde_json::from_slice(&bytes).with_context(|| format!("{}: not a plan manifest", path.display()))?;
+    let tracker_name = match (&a.tracker, &manifest.variant) {
+        (Some(t), _) => t.clone(),
+        (None, Some(v)) => format!("prl-track-{}-{v}", manifest.precision),
+        (None, None) => format!("prl-track-{}", manifest.precision),
     };
     let out = a.results.join(&dataset.name).join(&tracker_name);
     std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create", out.display()))?;
