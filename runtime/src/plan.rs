@@ -29,9 +29,14 @@ pub struct TemplateFeatures(TVec<TValue>);
 impl TemplateFeatures {
     /// Each feature tensor flattened row-major, in the search graph's input order.
     pub fn to_vecs(&self) -> Result<Vec<Vec<f32>>> {
-        let flat = |v: &TValue| v.try_as_plain_ram().and_then(|v| v.as_slice::<f32>().map(<[f32]>::to_vec));
-        self.0.iter().map(|v| flat(v).map_err(|e| run_err("template", e))).collect()
+        self.0.iter().map(|v| to_vec(v, "template")).collect()
     }
+}
+
+/// A graph's f32 value flattened row-major.
+fn to_vec(v: &TValue, graph: &'static str) -> Result<Vec<f32>> {
+    let flat = v.try_as_plain_ram().and_then(|v| v.as_slice::<f32>().map(<[f32]>::to_vec));
+    flat.map_err(|e| run_err(graph, e))
 }
 
 /// The search graph's outputs, flattened row-major.
@@ -114,10 +119,7 @@ impl Plan {
         let mut inputs: TVec<TValue> = tvec![input.into()];
         inputs.extend(zf.0.iter().cloned());
         let outs = self.search.run(inputs).map_err(|e| run_err("search", e))?;
-        let flat = |i: usize| -> Result<Vec<f32>> {
-            let v = outs[i].try_as_plain_ram().and_then(|v| v.as_slice::<f32>().map(<[f32]>::to_vec));
-            v.map_err(|e| run_err("search", e))
-        };
+        let flat = |i: usize| to_vec(&outs[i], "search");
         Ok(SearchOutput { loc: flat(0)?, cls1: flat(1)?, cls2: flat(2)? })
     }
 }
