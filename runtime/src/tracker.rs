@@ -127,6 +127,11 @@ impl Tracker {
         &self.plan
     }
 
+    /// The current target's template features (`None` before `init`).
+    pub fn features(&self) -> Option<&TemplateFeatures> {
+        self.state.as_ref().map(|s| &s.features)
+    }
+
     fn context_size(&self, size: (f64, f64)) -> f64 {
         let ctx = self.config.context_amount * (size.0 + size.1);
         ((size.0 + ctx) * (size.1 + ctx)).sqrt()

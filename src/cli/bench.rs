@@ -152,15 +152,14 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     }
     pb.finish_and_clear();
     template.remove(0);
-    // Operator profile of the search graph on the real crops.
-    let z = tracker.exemplar_crop(&frame, init)?;
+    // Operator profile of the search graph on the real crops, around the initial box.
     tracker.init(&frame, init)?;
     let x = tracker.search_crop(&frame)?;
-    let zf = tracker.plan().template(&z)?;
+    let zf = tracker.features().expect("initialised just above");
     if let Some(dir) = &a.save_tensors {
-        save_tensors(dir, tracker.plan(), &z, &x, &zf)?;
+        save_tensors(dir, tracker.plan(), &tracker.exemplar_crop(&frame, init)?, &x, zf)?;
     }
-    let prof = if a.top > 0 { tracker.plan().profile_search(&x, &zf, a.runs.min(5))? } else { vec![] };
+    let prof = if a.top > 0 { tracker.plan().profile_search(&x, zf, a.runs.min(5))? } else { vec![] };
     let total: f64 = prof.iter().map(|n| n.time.as_secs_f64()).sum();
     let top_ops = prof
         .iter()
