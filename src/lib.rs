@@ -3,12 +3,14 @@
 //! the way the official code (OpenCV) does, reading benchmark datasets, and scoring trackers as
 //! pysot-toolkit does (OPE).
 
+mod calibration;
 mod dataset;
 mod frames;
 mod metrics;
 pub mod ope;
 mod sequence;
 
+pub use calibration::{calibration_crops, CalibrationSpec, POSITION_JITTER, SCALE_JITTER};
 pub use dataset::{detect, Dataset, Format, Video, UAV123_ATTRIBUTES};
 pub use frames::load_frame;
 pub use metrics::iou;

@@ -32,6 +32,9 @@ pub enum Error {
     /// tract refused or failed on a model.
     #[error("{context}: {msg}")]
     Tract { context: String, msg: String },
+    /// Quantisation was asked for something it cannot do.
+    #[error("quantize: {0}")]
+    Quantize(String),
     /// Anything else, stated plainly.
     #[error("{0}")]
     Other(String),

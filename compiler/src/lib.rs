@@ -16,6 +16,7 @@ mod error;
 pub mod net;
 pub mod onnx;
 mod plan;
+pub mod quant;
 mod tensor;
 mod verify;
 mod weights;
@@ -25,7 +26,8 @@ pub use artefacts::{
 };
 pub use engine::{NetworkRunner, OnnxRunner};
 pub use error::{Error, Result};
-pub use plan::{compile, CompiledPlan, TRACT_VERSION};
+pub use plan::{compile, compile_int8, CompiledPlan, TRACT_VERSION};
+pub use quant::{quantize, Calibration, Method, PerChannel, QuantizeOptions};
 pub use tensor::{relative_error, Tensor};
 pub use verify::{read_golden, verify, StageReport, VerifyReport};
 pub use weights::{Init, Scope, Weights};

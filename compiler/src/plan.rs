@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use prl_runtime::{GraphInfo, PlanManifest, TrackerConfig, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
+use prl_runtime::{GraphInfo, PlanManifest, QuantizationInfo, TrackerConfig, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
 use sha2::{Digest, Sha256};
 use tract_onnx::prelude::{self as tp, Datum as _, Framework, InferenceFact, InferenceModelExt};
 
@@ -28,6 +28,24 @@ pub struct CompiledPlan {
 
 /// Compile a built model into a plan (fp32) carrying the tracker settings `tracker`.
 pub fn compile(model: &BuiltModel, tracker: &TrackerConfig) -> Result<CompiledPlan> {
+    compile_with(model, tracker, None)
+}
+
+/// Compile a model whose search graph [`crate::quantize`] rewrote into an int8 plan; the
+/// manifest records `quantization`.
+pub fn compile_int8(
+    model: &BuiltModel,
+    tracker: &TrackerConfig,
+    quantization: QuantizationInfo,
+) -> Result<CompiledPlan> {
+    compile_with(model, tracker, Some(quantization))
+}
+
+fn compile_with(
+    model: &BuiltModel,
+    tracker: &TrackerConfig,
+    quantization: Option<QuantizationInfo>,
+) -> Result<CompiledPlan> {
     let template = to_nnef(&model.template, &model.manifest.template, "template graph")?;
     let search = to_nnef(&model.search, &model.manifest.search, "search graph")?;
     let info = |g: &GraphInfo, file: &str, bytes: &[u8]| GraphInfo {
@@ -38,7 +56,7 @@ pub fn compile(model: &BuiltModel, tracker: &TrackerConfig) -> Result<CompiledPl
     let manifest = PlanManifest {
         format_version: PLAN_FORMAT_VERSION,
         model: model.manifest.model.clone(),
-        precision: "fp32".into(),
+        precision: if quantization.is_some() { "int8" } else { "fp32" }.into(),
         tool: format!("prl-compiler {}", env!("CARGO_PKG_VERSION")),
         tract_version: TRACT_VERSION.into(),
         weights: model.manifest.weights.clone(),
@@ -48,6 +66,7 @@ pub fn compile(model: &BuiltModel, tracker: &TrackerConfig) -> Result<CompiledPl
         tracker: tracker.clone(),
         variant: model.manifest.variant.clone(),
         optimizer_knobs: optimizer_knobs(),
+        quantization,
     };
     Ok(CompiledPlan { manifest, template, search })
 }

@@ -19,20 +19,26 @@
 
 mod config;
 mod crop;
+mod cropper;
 mod error;
 mod frame;
 mod manifest;
+mod nnef;
 mod plan;
+mod quantization;
 mod resize;
 mod tracker;
 
 pub use config::TrackerConfig;
 pub use crop::{crop_to_tensor, get_subwindow};
+pub use cropper::{Cropper, TemplateCrop};
 pub use error::{Error, Result};
 pub use frame::{Frame, PixelLayout};
 pub use manifest::{
     GraphInfo, PlanManifest, Preprocessing, TensorInfo, WeightsInfo, PLAN_FORMAT_VERSION, PLAN_MANIFEST,
 };
-pub use plan::{nnef, set_threads, NodeTime, Plan, SearchOutput, TemplateFeatures};
+pub use nnef::nnef;
+pub use plan::{set_threads, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures};
+pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
 pub use resize::resize_linear_u8;
 pub use tracker::{BBox, Prediction, StepTimings, Tracker};

@@ -99,4 +99,7 @@ pub struct PlanManifest {
     /// the graphs: kernel choices the compiler measured and made for this plan.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub optimizer_knobs: std::collections::BTreeMap<String, String>,
+    /// How the search graph was quantised (int8 plans only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quantization: Option<crate::QuantizationInfo>,
 }

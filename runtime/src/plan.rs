@@ -10,7 +10,7 @@ use sha2::{Digest, Sha256};
 use tract_nnef::prelude::*;
 use tract_nnef::tract_core::knobs::KnobScope;
 
-use crate::{Error, PlanManifest, Result, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
+use crate::{nnef, Error, PlanManifest, Result, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
 
 type Runnable = Arc<TypedSimplePlan>;
 
@@ -48,15 +48,6 @@ pub struct SearchOutput {
     pub cls1: Vec<f32>,
     /// [1, 11, 11] quality logit.
     pub cls2: Vec<f32>,
-}
-
-/// The NNEF framework plans are written and read with: tract's own operators plus the `prl`
-/// registry, which names the fused exact GELU that tract's declutter pass produces (tract has no
-/// NNEF serialiser of its own for it).
-pub fn nnef() -> tract_nnef::internal::Nnef {
-    let mut prl = tract_nnef::internal::Registry::new("prl");
-    prl.register_unit_element_wise("prl_gelu_exact", &tract_nnef::tract_core::ops::nn::GeluExact {});
-    tract_nnef::nnef().with_registry(prl)
 }
 
 /// Use `n` threads for tract's matrix products (1: single-threaded). Applies process-wide.
@@ -137,7 +128,33 @@ pub struct NodeTime {
     pub flop: f64,
 }
 
+/// One operator of an optimised graph, as tract describes it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeInfo {
+    /// Node name.
+    pub name: String,
+    /// tract operator after optimisation (`OptMatMul`, `Im2col`, ...).
+    pub op: String,
+    /// tract's own description of it (for matrix products: shapes and the kernel chosen, such
+    /// as `avx512vnni_mmm_i32_16x16` for an int8 product).
+    pub info: String,
+}
+
 impl Plan {
+    /// Every operator of the optimised search graph: what really runs.
+    pub fn search_nodes(&self) -> Vec<NodeInfo> {
+        let model = self.search.model();
+        model
+            .nodes()
+            .iter()
+            .map(|n| NodeInfo {
+                name: n.name.clone(),
+                op: n.op().name().to_string(),
+                info: n.op().info().map(|v| v.join("; ")).unwrap_or_default(),
+            })
+            .collect()
+    }
+
     /// tract's per-node profile of the search graph: each node timed over `runs` runs, slowest
     /// first.
     pub fn profile_search(&self, x: &[f32], zf: &TemplateFeatures, runs: usize) -> Result<Vec<NodeTime>> {

@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use crate::{crop_to_tensor, get_subwindow, Error, Frame, Plan, Result, SearchOutput, TemplateFeatures, TrackerConfig};
+use crate::{Cropper, Error, Frame, Plan, Result, SearchOutput, TemplateCrop, TemplateFeatures, TrackerConfig};
 
 /// An axis-aligned box: top-left corner and size, 0-based float pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -27,21 +27,11 @@ pub struct Prediction {
     pub score: f64,
 }
 
-/// A target's template crop and the quantities `init` keeps from it.
-struct Exemplar {
-    z: Vec<f32>,
-    center: (f64, f64),
-    size: (f64, f64),
-    s_z: f64,
-    channel_average: [f64; 3],
-}
-
 struct State {
     center: (f64, f64),
     size: (f64, f64),
-    channel_average: [f64; 3],
-    /// `s_z` of the template crop (rounded), reused when the target covers over half the frame.
-    init_sz: f64,
+    /// The template crop's padding colour and window side, which every search crop reuses.
+    template: TemplateCrop,
     features: TemplateFeatures,
 }
 
@@ -60,6 +50,7 @@ pub struct StepTimings {
 pub struct Tracker {
     plan: Plan,
     config: TrackerConfig,
+    cropper: Cropper,
     window: Vec<f64>,
     state: Option<State>,
     timings: StepTimings,
@@ -105,16 +96,12 @@ fn argmax(v: &[f64]) -> usize {
     best
 }
 
-fn round_half_even(v: f64) -> f64 {
-    v.round_ties_even()
-}
-
 impl Tracker {
     /// A tracker running `plan` with `config` (usually `plan.manifest().tracker`).
     pub fn new(plan: Plan, config: TrackerConfig) -> Self {
         let h = hanning(config.score_size);
         let window = h.iter().flat_map(|a| h.iter().map(move |b| a * b)).collect();
-        Tracker { plan, config, window, state: None, timings: StepTimings::default() }
+        Tracker { plan, cropper: Cropper::new(&config), config, window, state: None, timings: StepTimings::default() }
     }
 
     /// Where the time of the last `init` or `track` went.
@@ -132,55 +119,20 @@ impl Tracker {
         self.state.as_ref().map(|s| &s.features)
     }
 
-    fn context_size(&self, size: (f64, f64)) -> f64 {
-        let ctx = self.config.context_amount * (size.0 + size.1);
-        ((size.0 + ctx) * (size.1 + ctx)).sqrt()
-    }
-
-    /// The template graph's input for a target in `bbox` (x, y, w, h) on `frame`, cut as the
-    /// official `init` cuts it (float NCHW BGR), with the target's centre, size and crop side.
-    fn exemplar(&self, frame: &Frame, bbox: BBox) -> Result<Exemplar> {
-        let ok = |v: f64| v.is_finite();
-        if !(ok(bbox.x) && ok(bbox.y) && ok(bbox.w) && ok(bbox.h)) || bbox.w <= 0.0 || bbox.h <= 0.0 {
-            return Err(Error::Input(format!("init box {bbox:?} must have a finite position and a positive size")));
-        }
-        let (fw, fh) = (frame.width() as f64, frame.height() as f64);
-        if bbox.x + bbox.w <= 0.0 || bbox.y + bbox.h <= 0.0 || bbox.x >= fw || bbox.y >= fh {
-            return Err(Error::Input(format!("init box {bbox:?} lies outside the {fw}x{fh} frame")));
-        }
-        let center = (bbox.x + (bbox.w - 1.0) / 2.0, bbox.y + (bbox.h - 1.0) / 2.0);
-        let size = (bbox.w, bbox.h);
-        let context = self.context_size(size);
-        if context < 1.0 {
-            return Err(Error::Input(format!("init box {bbox:?} is too small: its context crop is under one pixel")));
-        }
-        let s_z = round_half_even(context);
-        let channel_average = frame.channel_mean();
-        let side = self.config.exemplar_size;
-        let z = crop_to_tensor(&get_subwindow(frame, center, side, s_z as usize, channel_average), side);
-        Ok(Exemplar { z, center, size, s_z, channel_average })
-    }
-
     /// The template graph's input for a target in `bbox` on `frame`, exactly as [`Tracker::init`]
     /// cuts it (float NCHW BGR, `[1, 3, exemplar_size, exemplar_size]`).
     pub fn exemplar_crop(&self, frame: &Frame, bbox: BBox) -> Result<Vec<f32>> {
-        Ok(self.exemplar(frame, bbox)?.z)
+        Ok(self.cropper.template(frame, bbox)?.z)
     }
 
     /// Start tracking the target in `bbox` (x, y, w, h) on `frame`.
     pub fn init(&mut self, frame: &Frame, bbox: BBox) -> Result<()> {
         let t0 = Instant::now();
-        let e = self.exemplar(frame, bbox)?;
+        let template = self.cropper.template(frame, bbox)?;
         let t1 = Instant::now();
-        let features = self.plan.template(&e.z)?;
+        let features = self.plan.template(&template.z)?;
         self.timings = StepTimings { crop: t1 - t0, network: t1.elapsed(), post: Duration::ZERO };
-        self.state = Some(State {
-            center: e.center,
-            size: e.size,
-            channel_average: e.channel_average,
-            init_sz: e.s_z,
-            features,
-        });
+        self.state = Some(State { center: template.center, size: template.size, template, features });
         Ok(())
     }
 
@@ -201,28 +153,18 @@ impl Tracker {
     /// `track` cuts it (float NCHW BGR).
     pub fn search_crop(&self, frame: &Frame) -> Result<Vec<f32>> {
         let st = self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))?;
-        let s_z = self.search_context(st, frame.width(), frame.height());
-        let side = self.config.instance_size;
-        let s_x = s_z * (side as f64 / self.config.exemplar_size as f64);
-        let crop = get_subwindow(frame, st.center, side, round_half_even(s_x) as usize, st.channel_average);
-        Ok(crop_to_tensor(&crop, side))
+        Ok(self.cropper.search(frame, st.center, st.size, &st.template))
     }
 
-    /// `s_z` of the search crop: the context size of the current target, or the template's
-    /// when the target covers more than half of the frame.
-    fn search_context(&self, st: &State, width: usize, height: usize) -> f64 {
-        if st.size.0 * st.size.1 > 0.5 * (width * height) as f64 {
-            st.init_sz
-        } else {
-            self.context_size(st.size)
-        }
+    /// The cell of the 11x11 grid `update` would pick for `out` from the current state (the
+    /// argmax of the penalised, windowed score), without changing the state: for comparing two
+    /// networks' outputs on the same crop.
+    pub fn best_cell(&self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<usize> {
+        Ok(argmax(&self.cells(frame_w, frame_h, out)?.pscore))
     }
 
-    /// The official post-processing of one search output for a frame of `frame_w`x`frame_h`:
-    /// decode the grid, apply the scale/aspect penalties and the cosine window, pick the best
-    /// cell, smooth and clip the target, and return it. [`Tracker::track`] is crop, network,
-    /// then this; it is public for benchmarks and for callers that run the network themselves.
-    pub fn update(&mut self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<Prediction> {
+    /// Decoded boxes, scores, penalties and penalised scores of every cell.
+    fn cells(&self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<Cells> {
         let cfg = &self.config;
         let st = self.state.as_ref().ok_or_else(|| Error::Input("update called before init".into()))?;
         let cells = cfg.score_size * cfg.score_size;
@@ -234,8 +176,7 @@ impl Tracker {
                 out.cls2.len()
             )));
         }
-        let (fw, fh) = (frame_w as f64, frame_h as f64);
-        let scale_z = cfg.exemplar_size as f64 / self.search_context(st, frame_w, frame_h);
+        let scale_z = cfg.exemplar_size as f64 / self.cropper.search_context(st.size, frame_w, frame_h, &st.template);
         let (pred, score) = decode(cfg, &out.loc, &out.cls1, &out.cls2);
 
         let sz = |w: f64, h: f64| {
@@ -254,6 +195,18 @@ impl Tracker {
             penalty.push(p);
             pscore.push(p * score[i] * (1.0 - cfg.window_influence) + self.window[i] * cfg.window_influence);
         }
+        Ok(Cells { pred, score, penalty, pscore, scale_z })
+    }
+
+    /// The official post-processing of one search output for a frame of `frame_w`x`frame_h`:
+    /// decode the grid, apply the scale/aspect penalties and the cosine window, pick the best
+    /// cell, smooth and clip the target, and return it. [`Tracker::track`] is crop, network,
+    /// then this; it is public for benchmarks and for callers that run the network themselves.
+    pub fn update(&mut self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<Prediction> {
+        let cfg = &self.config;
+        let Cells { pred, score, penalty, pscore, scale_z } = self.cells(frame_w, frame_h, out)?;
+        let st = self.state.as_ref().expect("cells checked init");
+        let (fw, fh) = (frame_w as f64, frame_h as f64);
         let best = argmax(&pscore);
         let b = pred[best].map(|v| v / scale_z);
         let lr = penalty[best] * score[best] * cfg.lr;
@@ -273,6 +226,15 @@ impl Tracker {
             score: score[best],
         })
     }
+}
+
+/// Every cell's decoded box, score, penalty and penalised score, and the crop's scale.
+struct Cells {
+    pred: Vec<[f64; 4]>,
+    score: Vec<f64>,
+    penalty: Vec<f64>,
+    pscore: Vec<f64>,
+    scale_z: f64,
 }
 
 /// `np.maximum(r, 1/(r+1e-5))`: NaN propagates.

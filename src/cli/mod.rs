@@ -2,10 +2,13 @@
 
 mod bench;
 mod build;
+mod compare;
+mod compare_report;
 mod compile;
 mod demo;
 mod eval;
 mod plots;
+mod quantize;
 mod run_benchmark;
 mod track;
 mod verify;
@@ -34,10 +37,14 @@ enum Command {
     Track(track::TrackArgs),
     /// Time each stage of a tracking step and profile the search graph's operators.
     Bench(bench::BenchArgs),
+    /// Calibrate on real sequences and write an int8 plan (QLinear operators on tract's integer kernels).
+    Quantize(quantize::QuantizeArgs),
     /// Track every video of a dataset (OPE) and write pysot-format results.
     RunBenchmark(run_benchmark::RunBenchmarkArgs),
     /// Score trackers' result folders on a dataset (OPE: success, precision, norm precision).
     Eval(eval::EvalArgs),
+    /// Compare plans (e.g. fp32 and int8): latency, output fidelity, tracking agreement, memory.
+    Compare(compare::CompareArgs),
     /// Show the whole pipeline working with no input: seeded network, plan, generated video.
     Demo(demo::DemoArgs),
 }
@@ -76,6 +83,8 @@ pub fn run() -> anyhow::Result<()> {
         Command::Eval(a) => eval::run(a),
         Command::RunBenchmark(a) => run_benchmark::run(a),
         Command::Bench(a) => bench::run(a),
+        Command::Quantize(a) => quantize::run(a),
+        Command::Compare(a) => compare::run(a),
     }
 }
 
@@ -84,6 +93,17 @@ pub fn spinner(msg: &str) -> indicatif::ProgressBar {
     let pb = indicatif::ProgressBar::new_spinner();
     pb.set_style(indicatif::ProgressStyle::with_template("{spinner} {msg} ({elapsed})").expect("static template"));
     pb.enable_steady_tick(std::time::Duration::from_millis(120));
+    pb.set_message(msg.to_string());
+    pb
+}
+
+/// A progress bar on stderr with `msg` (hidden when not a terminal).
+pub fn progress_bar(len: u64, msg: &str) -> indicatif::ProgressBar {
+    let pb = indicatif::ProgressBar::new(len);
+    pb.set_style(
+        indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} ({elapsed}, {eta} left)")
+            .expect("static template"),
+    );
     pb.set_message(msg.to_string());
     pb
 }
@@ -101,8 +121,19 @@ pub fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> anyhow::Result<
     })
 }
 
-/// Peak resident memory of this process so far, in MB (where the OS reports it).
+/// Peak resident memory of this process so far, in MB (where the OS reports it). On Linux this
+/// is `VmHWM` of `/proc/self/status`, which starts afresh at `exec`; `getrusage`'s maximum would
+/// carry over the memory of the process that spawned us (`prl compare` runs `prl track`).
 pub fn peak_rss_mb() -> Option<f64> {
+    if let Ok(status) = std::fs::read_to_string("/proc/self/status") {
+        let kb = status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmHWM:"))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok());
+        if let Some(kb) = kb {
+            return Some(kb * 1024.0 / 1e6);
+        }
+    }
     #[cfg(unix)]
     {
         let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();

@@ -33,6 +33,9 @@ pub struct TrackArgs {
     /// Threads for the network (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Track only the first N frames.
+    #[arg(long, value_name = "N")]
+    max_frames: Option<usize>,
 }
 
 fn parse_init(s: &str) -> Result<[f64; 4], String> {
@@ -194,7 +197,7 @@ fn draw_rect(img: &mut image::RgbImage, b: [f64; 4], color: [u8; 3]) {
 
 pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     set_threads(a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())));
-    let (frames, gt, init) = match (&a.sequence, &a.frames, a.init) {
+    let (mut frames, gt, init) = match (&a.sequence, &a.frames, a.init) {
         (Some(dir), _, init) => {
             let seq = Sequence::open(dir)?;
             let init = match (init, &seq.groundtruth) {
@@ -207,6 +210,9 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
         (None, Some(dir), Some(b)) => (Sequence::list_frames(dir)?, None, BBox { x: b[0], y: b[1], w: b[2], h: b[3] }),
         _ => anyhow::bail!("give --sequence DIR, or --frames DIR with --init x,y,w,h"),
     };
+    if let Some(n) = a.max_frames {
+        frames.truncate(n.max(1));
+    }
     if let Some(dir) = &a.vis {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }

@@ -1,0 +1,181 @@
+//! Which nodes can become integer operators, and their weights in i8.
+
+use std::collections::{HashMap, HashSet};
+
+use tract_onnx::pb;
+
+const FLOAT: i32 = 1;
+
+/// Which integer operator a candidate becomes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// `Conv` -> `QLinearConv`.
+    Conv,
+    /// `MatMul` with a constant right-hand side -> `QLinearMatMul`.
+    MatMul,
+    /// `MatMul` of two activations (the `s1` correlation against the template's Toeplitz
+    /// kernel, attention) -> `QLinearMatMul` with both sides quantised at run time.
+    ActMatMul,
+}
+
+/// A node the quantiser can turn into an integer operator.
+#[derive(Debug, Clone)]
+pub struct Candidate {
+    /// The node's name (stable: it is what `--keep-fp32` names).
+    pub node: String,
+    /// What it becomes.
+    pub kind: Kind,
+    /// Its activation input.
+    pub input: String,
+    /// The value its quantised output stands for: its own output, or that of the `Relu` folded
+    /// into it.
+    pub output: String,
+    /// The folded `Relu` node, if any.
+    pub relu: Option<String>,
+    /// A `Relu` follows after a `MaxPool` (AlexNet's conv, BN, pool, ReLU): the output's range
+    /// starts at 0, and pool and ReLU then run on u8.
+    pub relu_after_pool: bool,
+    /// The weight initializer (for [`Kind::ActMatMul`], the right-hand activation).
+    pub weight: String,
+    /// The graph multiplies by the weight's transpose (a linear layer's `Transpose` of a
+    /// PyTorch `[out, in]` weight).
+    pub transposed: bool,
+}
+
+impl Candidate {
+    /// The weight as the operator uses it: dims and row-major values.
+    pub fn weight_values(&self, inits: &HashMap<&str, &pb::TensorProto>) -> (Vec<usize>, Vec<f32>) {
+        let w = inits[self.weight.as_str()];
+        let dims: Vec<usize> = w.dims.iter().map(|&d| d as usize).collect();
+        let v = floats(w);
+        if !self.transposed {
+            return (dims, v);
+        }
+        let (r, c) = (dims[0], dims[1]);
+        let t = (0..r * c).map(|i| v[(i % r) * c + i / r]).collect();
+        (vec![c, r], t)
+    }
+}
+
+/// The nodes of `model`'s graph that can become integer operators.
+pub fn candidates(graph: &pb::GraphProto) -> Vec<Candidate> {
+    let inits: HashMap<&str, &pb::TensorProto> = graph.initializer.iter().map(|t| (t.name.as_str(), t)).collect();
+    let outputs: HashSet<&str> = graph.output.iter().map(|o| o.name.as_str()).collect();
+    let mut consumers: HashMap<&str, Vec<&pb::NodeProto>> = HashMap::new();
+    for n in &graph.node {
+        for i in &n.input {
+            consumers.entry(i.as_str()).or_default().push(n);
+        }
+    }
+    // Transposes of 2-D initializers (linear layers): output name -> initializer.
+    let transposes: HashMap<&str, &pb::TensorProto> = graph
+        .node
+        .iter()
+        .filter(|n| n.op_type == "Transpose" && ints(n, "perm") == [1, 0])
+        .filter_map(|n| Some((n.output[0].as_str(), *inits.get(n.input[0].as_str())?)))
+        .collect();
+    let sole = |v: &str, op: &str| match consumers.get(v).map(Vec::as_slice) {
+        Some([c]) if c.op_type == op && !outputs.contains(v) => Some(*c),
+        _ => None,
+    };
+    let mut found = vec![];
+    for n in &graph.node {
+        let Some(wname) = n.input.get(1) else { continue };
+        let (w, transposed) = match (inits.get(wname.as_str()), transposes.get(wname.as_str())) {
+            (Some(w), _) => (*w, false),
+            (None, Some(w)) if n.op_type == "MatMul" => (*w, true),
+            (None, None) if n.op_type == "MatMul" => {
+                found.push(Candidate {
+                    node: n.name.clone(),
+                    kind: Kind::ActMatMul,
+                    input: n.input[0].clone(),
+                    output: n.output[0].clone(),
+                    relu: None,
+                    relu_after_pool: false,
+                    weight: wname.clone(),
+                    transposed: false,
+                });
+                continue;
+            }
+            _ => continue,
+        };
+        let kind = match n.op_type.as_str() {
+            "Conv" if group(n) == 1 && w.dims.len() == 4 => Kind::Conv,
+            "MatMul" if w.dims.len() == 2 => Kind::MatMul,
+            _ => continue,
+        };
+        if w.data_type != FLOAT {
+            continue;
+        }
+        let out = n.output[0].as_str();
+        let relu = sole(out, "Relu");
+        let relu_after_pool =
+            relu.is_none() && sole(out, "MaxPool").is_some_and(|p| sole(&p.output[0], "Relu").is_some());
+        found.push(Candidate {
+            node: n.name.clone(),
+            kind,
+            input: n.input[0].clone(),
+            output: relu.map_or(out, |r| r.output[0].as_str()).to_string(),
+            relu: relu.map(|r| r.name.clone()),
+            relu_after_pool,
+            weight: w.name.clone(),
+            transposed,
+        });
+    }
+    found
+}
+
+fn ints(n: &pb::NodeProto, name: &str) -> Vec<i64> {
+    n.attribute.iter().find(|a| a.name == name).map_or(vec![], |a| a.ints.clone())
+}
+
+fn group(n: &pb::NodeProto) -> i64 {
+    n.attribute.iter().find(|a| a.name == "group").map_or(1, |a| a.i)
+}
+
+/// f32 values of an initializer.
+pub fn floats(t: &pb::TensorProto) -> Vec<f32> {
+    if t.raw_data.is_empty() {
+        t.float_data.clone()
+    } else {
+        t.raw_data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+    }
+}
+
+/// Symmetric i8 weights: per output channel (`axis` of the weight) or one scale for all.
+pub fn quantise_weights(w: &[f32], dims: &[usize], axis: usize, per_channel: bool) -> (Vec<i8>, Vec<f32>) {
+    let channels = dims[axis];
+    let inner: usize = dims[axis + 1..].iter().product();
+    let channel = |i: usize| (i / inner) % channels;
+    let mut absmax = vec![0f32; if per_channel { channels } else { 1 }];
+    for (i, &v) in w.iter().enumerate() {
+        let c = if per_channel { channel(i) } else { 0 };
+        absmax[c] = absmax[c].max(v.abs());
+    }
+    let scales: Vec<f32> = absmax.iter().map(|&m| if m > 0.0 { m / 127.0 } else { 1.0 }).collect();
+    let q = w
+        .iter()
+        .enumerate()
+        .map(|(i, &v)| (v / scales[if per_channel { channel(i) } else { 0 }]).round().clamp(-127.0, 127.0) as i8)
+        .collect();
+    (q, scales)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn weights_per_channel_use_each_channels_range() {
+        let w = [1.0, -0.5, 0.005, 0.02];
+        let (q, s) = quantise_weights(&w, &[2, 2], 0, true);
+        assert_eq!(q, vec![127, -64, 32, 127]);
+        assert_eq!(s, vec![1.0 / 127.0, 0.02 / 127.0]);
+        let (q, s) = quantise_weights(&w, &[2, 2], 0, false);
+        assert_eq!(q, vec![127, -64, 1, 3]);
+        assert_eq!(s.len(), 1);
+        // MatMul weights [K, N] are per column.
+        let (_, s) = quantise_weights(&w, &[2, 2], 1, true);
+        assert_eq!(s, vec![1.0 / 127.0, 0.5 / 127.0]);
+    }
+}

@@ -1,0 +1,298 @@
+//! Post-training int8 quantisation of the search graph.
+//!
+//! 1. Calibrate: run the fp32 template graph on each calibration template crop and the fp32
+//!    search graph on each calibration search crop, observing every tensor an integer operator
+//!    would read or write ([`Observer`]).
+//! 2. Choose: every `Conv`/`MatMul` with constant weights and enough work (at least
+//!    [`QuantizeOptions::min_macs`] multiply-adds) is a layer; weights are symmetric i8, per
+//!    tensor or per output channel; activations are u8 with the range the [`Method`] picks.
+//! 3. Optionally rank layers by sensitivity (each quantised alone, error of loc/cls1/cls2 over
+//!    calibration crops) and keep the most sensitive in f32 (`budget`), plus any named ones.
+//! 4. Rewrite the ONNX graph ([`rewrite`]) into `QLinearConv`/`QLinearMatMul`, which tract runs
+//!    on its integer kernels with requantisation fused.
+//!
+//! The template graph runs once per target and stays fp32.
+
+mod calibrate;
+mod candidates;
+mod observer;
+mod rewrite;
+
+use std::collections::{BTreeMap, HashMap};
+
+use prost::Message;
+use sha2::{Digest, Sha256};
+use tract_onnx::pb;
+
+pub use calibrate::Calibration;
+pub use candidates::{candidates, quantise_weights, Candidate, Kind};
+pub use observer::{Method, Observer, PERCENTILE};
+pub use rewrite::QParams;
+
+use prl_runtime::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
+
+use crate::checkpoint::hex;
+use crate::{relative_error, BuiltModel, Error, Result};
+
+/// Whether weights get one scale per output channel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PerChannel {
+    /// Per channel where one scale per tensor loses more than 2% of the weight (relative
+    /// error) and per channel at least halves that: per-channel requantisation runs as separate
+    /// f32 operators in tract (layer 2: about 10% slower), and a weight error under 2% costs less
+    /// than the activations' quantisation already does.
+    Auto,
+    /// Always per channel.
+    On,
+    /// Always one scale per weight tensor.
+    Off,
+}
+
+impl PerChannel {
+    /// Every setting.
+    pub const ALL: [PerChannel; 3] = [PerChannel::Auto, PerChannel::On, PerChannel::Off];
+
+    /// The name used on the command line and in manifests.
+    pub fn name(self) -> &'static str {
+        match self {
+            PerChannel::Auto => "auto",
+            PerChannel::On => "on",
+            PerChannel::Off => "off",
+        }
+    }
+
+    /// The setting called `name`, if any.
+    pub fn parse(name: &str) -> Option<PerChannel> {
+        PerChannel::ALL.into_iter().find(|p| p.name() == name)
+    }
+}
+
+/// What the quantiser does.
+#[derive(Debug, Clone)]
+pub struct QuantizeOptions {
+    /// How activation ranges are chosen.
+    pub method: Method,
+    /// Per-channel weight scales.
+    pub per_channel: PerChannel,
+    /// Layers (node names) kept in f32.
+    pub keep_fp32: Vec<String>,
+    /// Keep this many of the most sensitive layers in f32 (runs the sensitivity pass).
+    pub budget: Option<usize>,
+    /// Layers with fewer multiply-adds stay f32: the quantise/dequantise around them would cost
+    /// more than the integer kernel saves.
+    pub min_macs: u64,
+    /// Convolutions with fewer output channels stay f32: tract's int8 convolution pays an
+    /// eager im2col and zero-point column sums per input element, which only enough output
+    /// channels amortise (layer 1, 96 channels, measured about 2x slower in int8 than in f32).
+    pub min_out_channels: usize,
+    /// Also quantise products of two activations (the `s1` correlation, attention).
+    pub act_matmul: bool,
+    /// Calibration crops the sensitivity pass measures on.
+    pub sensitivity_crops: usize,
+}
+
+impl Default for QuantizeOptions {
+    fn default() -> Self {
+        QuantizeOptions {
+            method: Method::MinMax,
+            per_channel: PerChannel::Auto,
+            keep_fp32: vec![],
+            budget: None,
+            min_macs: 4_000_000,
+            min_out_channels: 128,
+            act_matmul: false,
+            sensitivity_crops: 8,
+        }
+    }
+}
+
+/// Quantise `model`'s search graph on `calib`. `progress(stage, done, total)` reports each step.
+pub fn quantize(
+    model: &BuiltModel,
+    calib: &Calibration,
+    opts: &QuantizeOptions,
+    progress: &mut dyn FnMut(&str, usize, usize),
+) -> Result<(BuiltModel, QuantizationInfo)> {
+    let mut onnx =
+        pb::ModelProto::decode(model.search.as_slice()).map_err(|e| Error::Other(format!("search graph: {e}")))?;
+    let graph = onnx.graph.as_mut().ok_or_else(|| Error::Other("search graph: no graph".into()))?;
+    if graph.node.iter().any(|n| n.op_type.starts_with("QLinear")) {
+        return Err(Error::Quantize("the model is already quantised (its search graph has QLinear operators)".into()));
+    }
+    let cands = candidates(graph);
+    for name in &opts.keep_fp32 {
+        if !cands.iter().any(|c| &c.node == name) {
+            let names: Vec<&str> = cands.iter().map(|c| c.node.as_str()).collect();
+            return Err(Error::Quantize(format!(
+                "--keep-fp32 `{name}` is not a quantisable layer; they are: {}",
+                names.join(", ")
+            )));
+        }
+    }
+    let stats = calibrate::observe(model, graph, &cands, calib, progress)?;
+    let inits: HashMap<&str, &pb::TensorProto> = graph.initializer.iter().map(|t| (t.name.as_str(), t)).collect();
+    let range = |v: &str| stats.observers[v].range(opts.method).unwrap_or((0.0, 0.0));
+    let mut layers = vec![];
+    for c in &cands {
+        let (weight_error, per_channel, macs) = if c.kind == Kind::ActMatMul {
+            let k = *stats.shapes[&c.input].last().expect("a matrix");
+            (0.0, false, stats.shapes[&c.output].iter().product::<usize>() as u64 * k as u64)
+        } else {
+            let (dims, values) = c.weight_values(&inits);
+            let axis = if c.kind == Kind::Conv { 0 } else { 1 };
+            let err = |pc| {
+                let (q, s) = quantise_weights(&values, &dims, axis, pc);
+                let inner: usize = dims[axis + 1..].iter().product();
+                let deq: Vec<f32> = q
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &v)| v as f32 * s[if pc { (i / inner) % dims[axis] } else { 0 }])
+                    .collect();
+                relative_error(&deq, &values).0
+            };
+            let (e_tensor, e_channel) = (err(false), err(true));
+            let per_channel = match opts.per_channel {
+                PerChannel::On => true,
+                PerChannel::Off => false,
+                PerChannel::Auto => e_tensor > 0.02 && e_tensor > 2.0 * e_channel,
+            };
+            let k: usize = if c.kind == Kind::Conv { dims[1..].iter().product() } else { dims[0] };
+            let macs = stats.shapes[&c.output].iter().product::<usize>() as u64 * k as u64;
+            (if per_channel { e_channel } else { e_tensor }, per_channel, macs)
+        };
+        let out_channels = (c.kind == Kind::Conv).then(|| stats.shapes[&c.output][1]);
+        let decision = if opts.keep_fp32.contains(&c.node) {
+            LayerDecision::KeptByUser
+        } else if macs < opts.min_macs {
+            LayerDecision::TooSmall
+        } else if out_channels.is_some_and(|n| n < opts.min_out_channels) {
+            LayerDecision::FewChannels
+        } else if c.kind == Kind::ActMatMul && !opts.act_matmul {
+            LayerDecision::ActivationProduct
+        } else {
+            LayerDecision::Int8
+        };
+        layers.push(QuantLayer {
+            node: c.node.clone(),
+            op: match c.kind {
+                Kind::Conv => "conv",
+                Kind::MatMul => "matmul",
+                Kind::ActMatMul => "act-matmul",
+            }
+            .into(),
+            macs,
+            decision,
+            per_channel,
+            weight_error,
+            input_range: range(&c.input),
+            output_range: range(&c.output),
+            sensitivity: None,
+        });
+    }
+    let mut params: HashMap<String, QParams> = stats
+        .observers
+        .keys()
+        .map(|v| {
+            let (lo, hi) = range(v);
+            (v.clone(), QParams::from_range(lo, hi))
+        })
+        .collect();
+    // A ReLU after the pool clips below 0 anyway: spend all 256 levels on [0, max].
+    for (c, l) in cands.iter().zip(layers.iter_mut()) {
+        if c.relu_after_pool {
+            l.output_range.0 = 0.0;
+            params.insert(c.output.clone(), QParams::from_range(0.0, l.output_range.1));
+        }
+    }
+    let template = onnx.clone();
+    if let Some(budget) = opts.budget {
+        sensitivity(&template, model, calib, &stats, &params, &mut layers, opts.sensitivity_crops, progress)?;
+        let mut ranked: Vec<usize> = (0..layers.len()).filter(|&i| layers[i].decision == LayerDecision::Int8).collect();
+        let score = |l: &QuantLayer| l.sensitivity.map_or(0.0, |s| s.iter().cloned().fold(0.0, f64::max));
+        ranked.sort_by(|&a, &b| score(&layers[b]).total_cmp(&score(&layers[a])));
+        for &i in ranked.iter().take(budget) {
+            layers[i].decision = LayerDecision::KeptSensitive;
+        }
+    }
+    let chosen = chosen_layers(&layers, None);
+    let mut onnx = template;
+    rewrite::rewrite(onnx.graph.as_mut().expect("checked above"), &chosen, &params)?;
+    let bytes = onnx.encode_to_vec();
+    let mut out = model.clone();
+    out.manifest.search.sha256 = hex(&Sha256::digest(&bytes));
+    out.search = bytes;
+    let ranges = quantised_values(&onnx, &params);
+    let report = QuantizationInfo {
+        method: opts.method.name().into(),
+        per_channel: opts.per_channel.name().into(),
+        calibration: CalibrationInfo {
+            template_crops: calib.templates.len(),
+            search_crops: calib.searches.len(),
+            ..calib.info.clone()
+        },
+        layers,
+        ranges,
+    };
+    Ok((out, report))
+}
+
+/// The layers to rewrite: those decided int8, or only `only` when given.
+fn chosen_layers(layers: &[QuantLayer], only: Option<&str>) -> HashMap<String, rewrite::NodePlan> {
+    layers
+        .iter()
+        .filter(|l| match only {
+            Some(n) => l.node == n,
+            None => l.decision == LayerDecision::Int8,
+        })
+        .map(|l| (l.node.clone(), rewrite::NodePlan { per_channel: l.per_channel }))
+        .collect()
+}
+
+/// The (min, max) each u8 tensor of the rewritten graph stands for.
+fn quantised_values(onnx: &pb::ModelProto, params: &HashMap<String, QParams>) -> BTreeMap<String, (f32, f32)> {
+    let graph = onnx.graph.as_ref().expect("a graph");
+    graph
+        .node
+        .iter()
+        .filter(|n| n.op_type == "DequantizeLinear" || n.op_type == "QuantizeLinear")
+        .filter_map(|n| {
+            let v = if n.op_type == "QuantizeLinear" { &n.input[0] } else { &n.output[0] };
+            let p = params.get(v)?;
+            let lo = p.scale * -(p.zero_point as f32);
+            Some((v.clone(), (lo, lo + 255.0 * p.scale)))
+        })
+        .collect()
+}
+
+/// Quantise each int8-eligible layer alone and measure loc/cls1/cls2 against fp32.
+#[allow(clippy::too_many_arguments)]
+fn sensitivity(
+    onnx: &pb::ModelProto,
+    model: &BuiltModel,
+    calib: &Calibration,
+    stats: &calibrate::Stats,
+    params: &HashMap<String, QParams>,
+    layers: &mut [QuantLayer],
+    crops: usize,
+    progress: &mut dyn FnMut(&str, usize, usize),
+) -> Result<()> {
+    let samples: Vec<usize> = (0..calib.searches.len().min(crops.max(1))).collect();
+    let reference = calibrate::run_search(&model.search, calib, stats, &samples)?;
+    let todo: Vec<usize> = (0..layers.len()).filter(|&i| layers[i].decision == LayerDecision::Int8).collect();
+    for (done, &i) in todo.iter().enumerate() {
+        progress("sensitivity", done, todo.len());
+        let mut one = onnx.clone();
+        let chosen = chosen_layers(layers, Some(&layers[i].node));
+        rewrite::rewrite(one.graph.as_mut().expect("a graph"), &chosen, params)?;
+        let outs = calibrate::run_search(&one.encode_to_vec(), calib, stats, &samples)?;
+        let mut err = [0f64; 3];
+        for (o, r) in outs.iter().zip(&reference) {
+            for k in 0..3 {
+                err[k] += relative_error(&o[k].data, &r[k].data).0 / samples.len() as f64;
+            }
+        }
+        layers[i].sensitivity = Some(err);
+    }
+    progress("sensitivity", todo.len(), todo.len());
+    Ok(())
+}
