@@ -37,6 +37,7 @@ fn graphs(c: &mut Criterion) {
     let spec = prl_track::CalibrationSpec {
         sequences: vec![concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/uav123_10fps/wakeboard10").into()],
         frames_per_sequence: 8,
+        templates_per_sequence: 4,
         seed: 0,
         held_out: false,
     };

@@ -25,6 +25,10 @@ pub struct CalibrationSpec {
     pub sequences: Vec<PathBuf>,
     /// Search crops per sequence, from frames spread evenly after the first.
     pub frames_per_sequence: usize,
+    /// Templates per sequence: the first frame's, as tracking uses, and more from frames spread
+    /// over the sequence, so that ranges cover targets that look otherwise (the search crops of
+    /// a sequence take them in turn). 1 gives exactly what tracking sees.
+    pub templates_per_sequence: usize,
     /// Seed of the jitter.
     pub seed: u64,
     /// Take the frames half-way between those a calibration with the same count takes: crops
@@ -64,9 +68,22 @@ pub fn calibration_crops(
         let template = cropper
             .template(&first, init_box_from_groundtruth(gt[0]))
             .map_err(|e| InputError::new(&gt_file, format!("first box: {e}")))?;
-        let t = calib.templates.len();
-        calib.templates.push(Tensor::new([1, 3, config.exemplar_size, config.exemplar_size], template.z.clone()));
-        for i in spread(seq.frames.len(), spec.frames_per_sequence, spec.held_out) {
+        let side = config.exemplar_size;
+        let first_template = calib.templates.len();
+        calib.templates.push(Tensor::new([1, 3, side, side], template.z.clone()));
+        for k in spread(seq.frames.len(), spec.templates_per_sequence.saturating_sub(1), false) {
+            let b = gt[k];
+            if b.iter().all(|v| v.is_finite()) && b[2] > 0.0 && b[3] > 0.0 {
+                let frame = load_frame(&seq.frames[k])?;
+                let z = cropper
+                    .template(&frame, init_box_from_groundtruth(b))
+                    .map_err(|e| InputError::new(&gt_file, format!("box {}: {e}", k + 1)))?;
+                calib.templates.push(Tensor::new([1, 3, side, side], z.z));
+            }
+        }
+        let templates = calib.templates.len() - first_template;
+        for (j, i) in spread(seq.frames.len(), spec.frames_per_sequence, spec.held_out).into_iter().enumerate() {
+            let t = first_template + j % templates;
             let [x, y, w, h] = gt[i];
             progress(calib.searches.len(), total);
             if !(x.is_finite() && y.is_finite() && w > 0.0 && h > 0.0) {
@@ -84,16 +101,17 @@ pub fn calibration_crops(
         names.push(seq.name.clone());
     }
     progress(total, total);
-    calib.info = CalibrationInfo {
-        sequences: names,
-        sampling: format!(
-            "template from each sequence's first ground-truth box; {} search crops per sequence from frames spread \
-             evenly after the first, centred on the ground truth moved by N(0, {POSITION_JITTER}) of its size and \
-             scaled by exp(N(0, {SCALE_JITTER})), seed {}",
-            spec.frames_per_sequence, spec.seed
+    calib.info =
+        CalibrationInfo {
+            sequences: names,
+            sampling: format!(
+            "{} template(s) per sequence (its first ground-truth box, then boxes spread over it); {} search crops per \
+             sequence from frames spread evenly after the first, taking the templates in turn, centred on the ground \
+             truth moved by N(0, {POSITION_JITTER}) of its size and scaled by exp(N(0, {SCALE_JITTER})), seed {}",
+            spec.templates_per_sequence.max(1), spec.frames_per_sequence, spec.seed
         ),
-        ..Default::default()
-    };
+            ..Default::default()
+        };
     Ok(calib)
 }
 

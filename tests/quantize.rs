@@ -46,7 +46,13 @@ fn held_out_errors(a: &Path, b: &Path) -> [f64; 3] {
     let seq = Sequence::open(&dir).unwrap();
     let f0 = load_frame(&seq.frames[0]).unwrap();
     let init = init_box_from_groundtruth(seq.groundtruth.as_ref().unwrap()[0]);
-    let spec = CalibrationSpec { sequences: vec![dir], frames_per_sequence: 4, seed: 7, held_out: true };
+    let spec = CalibrationSpec {
+        sequences: vec![dir],
+        frames_per_sequence: 4,
+        templates_per_sequence: 1,
+        seed: 7,
+        held_out: true,
+    };
     let crops = calibration_crops(&spec, &prl_runtime::TrackerConfig::default(), &mut |_, _| {}).unwrap();
     let mut outs = vec![vec![]; 2];
     for (k, p) in [a, b].into_iter().enumerate() {
@@ -99,7 +105,8 @@ fn int8_plan_runs_integer_kernels_near_fp32_and_compares() {
     let q = m.quantization.as_ref().unwrap();
     assert_eq!((q.method.as_str(), q.per_channel.as_str()), ("percentile", "auto"));
     assert_eq!(q.calibration.sequences, vec!["building4".to_string()]);
-    assert_eq!((q.calibration.template_crops, q.calibration.search_crops), (1, 4));
+    // The default: the first box and 3 more per sequence.
+    assert_eq!((q.calibration.template_crops, q.calibration.search_crops), (4, 4));
     let int8_layers = q.layers.iter().filter(|l| l.decision == LayerDecision::Int8).count();
     assert!(int8_layers >= 15, "{int8_layers} int8 layers");
     assert!(q.ranges.values().all(|(lo, hi)| lo <= &0.0 && hi >= &0.0 && hi > lo));

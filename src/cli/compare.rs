@@ -232,6 +232,8 @@ fn fidelity(a: &CompareArgs, seqs: &[Sequence], trackers: &mut [Tracker]) -> any
     let spec = CalibrationSpec {
         sequences: a.sequences.clone(),
         frames_per_sequence: a.crops_per_seq,
+        // What tracking sees: the trackers start on each sequence's first frame.
+        templates_per_sequence: 1,
         seed: 1,
         held_out: true,
     };

@@ -29,6 +29,10 @@ pub struct QuantizeArgs {
     /// Search crops per calibration sequence, from frames spread over it.
     #[arg(long, default_value_t = 64, value_name = "N")]
     frames_per_seq: usize,
+    /// Template crops per calibration sequence: the first frame's and more from frames spread
+    /// over it, so that ranges also cover targets that look otherwise.
+    #[arg(long, default_value_t = 4, value_name = "N")]
+    templates_per_seq: usize,
     /// How activation ranges are chosen: minmax, percentile (99.99% of each side), entropy (KL).
     #[arg(long, default_value = "percentile", value_parser = parse_method)]
     method: Method,
@@ -110,6 +114,7 @@ pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
     let spec = CalibrationSpec {
         sequences: a.calib.clone(),
         frames_per_sequence: a.frames_per_seq,
+        templates_per_sequence: a.templates_per_seq,
         seed: a.seed,
         held_out: false,
     };

@@ -26,8 +26,13 @@ pub(crate) struct Stats {
     pub observers: HashMap<String, Observer>,
     /// Value name -> its shape.
     pub shapes: HashMap<String, Vec<usize>>,
-    /// Template features (`zf1..zf5` as the search graph reads them) of each template.
-    pub features: Vec<Vec<Tensor>>,
+}
+
+/// Template features (the search graph's inputs after `x`) of the templates `wanted`, computed
+/// one template at a time: each is tens of megabytes.
+fn features_of(model: &BuiltModel, calib: &Calibration, wanted: &[usize]) -> Result<HashMap<usize, Vec<Tensor>>> {
+    let template = OnnxRunner::new(&model.template, "template graph", &[TEMPLATE_INPUT], None)?;
+    wanted.iter().map(|&t| Ok((t, template.run(&[&calib.templates[t]])?))).collect()
 }
 
 fn check(calib: &Calibration) -> Result<()> {
@@ -51,7 +56,6 @@ pub(crate) fn observe(
 ) -> Result<Stats> {
     check(calib)?;
     let template = OnnxRunner::new(&model.template, "template graph", &[TEMPLATE_INPUT], None)?;
-    let features = calib.templates.iter().map(|z| template.run(&[z])).collect::<Result<Vec<_>>>()?;
     let mut names: Vec<&str> =
         cands.iter().flat_map(|c| [c.input.as_str(), c.output.as_str()].into_iter().chain(dynamic(c))).collect();
     names.sort();
@@ -66,25 +70,30 @@ pub(crate) fn observe(
     let search = OnnxRunner::new(&model.search, "search graph (calibration)", &inputs, Some(&names))?;
     let mut observers: HashMap<String, Observer> = HashMap::new();
     let mut shapes = HashMap::new();
-    for (t, f) in features.iter().enumerate() {
-        if calib.searches.iter().any(|(s, _)| *s == t) {
-            for &i in &fed {
-                observers.entry(inputs[i].name.to_string()).or_default().observe(&f[i - 1].data);
-                shapes.insert(inputs[i].name.to_string(), f[i - 1].shape.clone());
-            }
+    let mut done = 0;
+    for (t, z) in calib.templates.iter().enumerate() {
+        let crops: Vec<&Tensor> = calib.searches.iter().filter(|(s, _)| *s == t).map(|(_, x)| x).collect();
+        if crops.is_empty() {
+            continue;
         }
-    }
-    for (i, (t, x)) in calib.searches.iter().enumerate() {
-        progress("calibrating", i, calib.searches.len());
-        let args: Vec<&Tensor> = std::iter::once(x).chain(&features[*t]).collect();
-        let outs = search.run(&args)?;
-        for (name, out) in search.output_names().iter().zip(outs) {
-            observers.entry(name.clone()).or_default().observe(&out.data);
-            shapes.insert(name.clone(), out.shape);
+        let f = template.run(&[z])?;
+        for &i in &fed {
+            observers.entry(inputs[i].name.to_string()).or_default().observe(&f[i - 1].data);
+            shapes.insert(inputs[i].name.to_string(), f[i - 1].shape.clone());
+        }
+        for x in crops {
+            progress("calibrating", done, calib.searches.len());
+            let args: Vec<&Tensor> = std::iter::once(x).chain(&f).collect();
+            let outs = search.run(&args)?;
+            for (name, out) in search.output_names().iter().zip(outs) {
+                observers.entry(name.clone()).or_default().observe(&out.data);
+                shapes.insert(name.clone(), out.shape);
+            }
+            done += 1;
         }
     }
     progress("calibrating", calib.searches.len(), calib.searches.len());
-    Ok(Stats { observers, shapes, features })
+    Ok(Stats { observers, shapes })
 }
 
 /// The right-hand activation of a product of two activations.
@@ -92,20 +101,38 @@ fn dynamic(c: &Candidate) -> Option<&str> {
     (c.kind == Kind::ActMatMul).then_some(c.weight.as_str())
 }
 
-/// The search graph `onnx`'s outputs (loc, cls1, cls2) on the calibration crops `samples`.
-pub(crate) fn run_search(
-    onnx: &[u8],
-    calib: &Calibration,
-    stats: &Stats,
-    samples: &[usize],
-) -> Result<Vec<Vec<Tensor>>> {
-    let search = OnnxRunner::new(onnx, "search graph", &net::search_inputs(), None)?;
-    samples
-        .iter()
-        .map(|&i| {
-            let (t, x) = &calib.searches[i];
-            let args: Vec<&Tensor> = std::iter::once(x).chain(&stats.features[*t]).collect();
-            search.run(&args)
-        })
-        .collect()
+/// Calibration search crops with their template features, for running variants of the search
+/// graph on the same inputs.
+pub(crate) struct Samples<'a> {
+    crops: Vec<(usize, &'a Tensor)>,
+    features: HashMap<usize, Vec<Tensor>>,
+}
+
+impl<'a> Samples<'a> {
+    /// Up to `n` search crops spread over the calibration set.
+    pub fn spread(model: &BuiltModel, calib: &'a Calibration, n: usize) -> Result<Samples<'a>> {
+        let len = calib.searches.len();
+        let n = n.clamp(1, len);
+        let crops: Vec<(usize, &Tensor)> = (0..n).map(|i| &calib.searches[i * len / n]).map(|(t, x)| (*t, x)).collect();
+        let mut wanted: Vec<usize> = crops.iter().map(|(t, _)| *t).collect();
+        wanted.dedup();
+        Ok(Samples { features: features_of(model, calib, &wanted)?, crops })
+    }
+
+    /// How many crops.
+    pub fn len(&self) -> usize {
+        self.crops.len()
+    }
+
+    /// The search graph `onnx`'s outputs (loc, cls1, cls2) on every crop.
+    pub fn run(&self, onnx: &[u8]) -> Result<Vec<Vec<Tensor>>> {
+        let search = OnnxRunner::new(onnx, "search graph", &net::search_inputs(), None)?;
+        self.crops
+            .iter()
+            .map(|(t, x)| {
+                let args: Vec<&Tensor> = std::iter::once(*x).chain(&self.features[t]).collect();
+                search.run(&args)
+            })
+            .collect()
+    }
 }

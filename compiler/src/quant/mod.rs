@@ -206,7 +206,7 @@ pub fn quantize(
     }
     let template = onnx.clone();
     if let Some(budget) = opts.budget {
-        sensitivity(&template, model, calib, &stats, &params, &mut layers, opts.sensitivity_crops, progress)?;
+        sensitivity(&template, model, calib, &params, &mut layers, opts.sensitivity_crops, progress)?;
         let mut ranked: Vec<usize> = (0..layers.len()).filter(|&i| layers[i].decision == LayerDecision::Int8).collect();
         let score = |l: &QuantLayer| l.sensitivity.map_or(0.0, |s| s.iter().cloned().fold(0.0, f64::max));
         ranked.sort_by(|&a, &b| score(&layers[b]).total_cmp(&score(&layers[a])));
@@ -265,26 +265,24 @@ fn quantised_values(onnx: &pb::ModelProto, params: &HashMap<String, QParams>) ->
 }
 
 /// Quantise each int8-eligible layer alone and measure loc/cls1/cls2 against fp32.
-#[allow(clippy::too_many_arguments)]
 fn sensitivity(
     onnx: &pb::ModelProto,
     model: &BuiltModel,
     calib: &Calibration,
-    stats: &calibrate::Stats,
     params: &HashMap<String, QParams>,
     layers: &mut [QuantLayer],
     crops: usize,
     progress: &mut dyn FnMut(&str, usize, usize),
 ) -> Result<()> {
-    let samples: Vec<usize> = (0..calib.searches.len().min(crops.max(1))).collect();
-    let reference = calibrate::run_search(&model.search, calib, stats, &samples)?;
+    let samples = calibrate::Samples::spread(model, calib, crops)?;
+    let reference = samples.run(&model.search)?;
     let todo: Vec<usize> = (0..layers.len()).filter(|&i| layers[i].decision == LayerDecision::Int8).collect();
     for (done, &i) in todo.iter().enumerate() {
         progress("sensitivity", done, todo.len());
         let mut one = onnx.clone();
         let chosen = chosen_layers(layers, Some(&layers[i].node));
         rewrite::rewrite(one.graph.as_mut().expect("a graph"), &chosen, params)?;
-        let outs = calibrate::run_search(&one.encode_to_vec(), calib, stats, &samples)?;
+        let outs = samples.run(&one.encode_to_vec())?;
         let mut err = [0f64; 3];
         for (o, r) in outs.iter().zip(&reference) {
             for k in 0..3 {

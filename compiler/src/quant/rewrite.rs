@@ -67,8 +67,8 @@ pub fn rewrite(
         })
     };
     // Activations are quantised where they are made, so that data movement between there and
-    // the integer operator (reshapes, gathers, pools) runs on u8.
-    let roots = roots(&graph.node, &cands, params);
+    // the integer operator (reshapes, gathers, ReLU) runs on u8.
+    let Placement { roots, path } = placement(&graph.node, &cands, params);
     let quantise = |v: &str, p: QParams, nodes: &mut Vec<pb::NodeProto>, new_inits: &mut Vec<pb::TensorProto>| {
         let q = format!("{v}.u8");
         let (s, z) = scalar_params(new_inits, &q, p);
@@ -151,7 +151,9 @@ pub fn rewrite(
         }
         // Data movement and max pooling commute with an increasing map; ReLU is the identity on
         // a u8 tensor whose zero point is 0 (nothing below 0 is representable).
-        let passes = |p: &QParams| passes_u8(&n.op_type, p);
+        // Only on the way to an integer operator, or after one (pools of quantised outputs).
+        let wanted = path.contains(&n.output[0]) || matches!(n.op_type.as_str(), "MaxPool" | "Relu");
+        let passes = |p: &QParams| wanted && passes_u8(&n.op_type, p);
         if n.output.len() == 1 && quantised.get(&n.input[0]).is_some_and(|(_, p)| passes(p)) {
             if let Some((xq, p)) = quantised.get(&n.input[0]).cloned() {
                 let out = n.output[0].clone();
@@ -197,34 +199,46 @@ fn passes_u8(op: &str, p: &QParams) -> bool {
     matches!(op, "MaxPool" | "Reshape" | "Transpose" | "Gather") || (op == "Relu" && p.zero_point == 0)
 }
 
-/// The values to quantise where they are made: for each integer operator's activation input,
-/// walk back through operators that run on u8 to the value that feeds them, which takes the
-/// input's parameters (data movement keeps values, so their range is the input's).
-fn roots(
+/// Where activations are quantised, and which values then travel in u8.
+struct Placement {
+    /// Values quantised where they are made (a graph input, at the start), with parameters.
+    roots: HashMap<String, QParams>,
+    /// Values between a root and an integer operator's input: made on u8 by data movement.
+    path: HashSet<String>,
+}
+
+/// For each integer operator's activation input, walk back through data movement (reshapes,
+/// transposes, gathers, ReLU) to the value that feeds it: quantising there lets the movement
+/// run on u8, a quarter of the bytes. Max pooling is not walked through: quantising after it
+/// touches a quarter of the values.
+fn placement(
     nodes: &[pb::NodeProto],
     cands: &HashMap<String, Candidate>,
     params: &HashMap<String, QParams>,
-) -> HashMap<String, QParams> {
+) -> Placement {
     let producer: HashMap<&str, &pb::NodeProto> =
         nodes.iter().flat_map(|n| n.output.iter().map(move |o| (o.as_str(), n))).collect();
     let outputs: HashSet<&str> = cands.values().map(|c| c.output.as_str()).collect();
-    let mut roots = HashMap::new();
+    let mut plan = Placement { roots: HashMap::new(), path: HashSet::new() };
     for c in cands.values() {
         let inputs = if c.kind == Kind::ActMatMul { vec![&c.input, &c.weight] } else { vec![&c.input] };
         for v in inputs {
             let Some(&p) = params.get(v) else { continue };
             let mut at = v.as_str();
-            while let Some(n) = producer.get(at).filter(|n| passes_u8(&n.op_type, &p) && !outputs.contains(at)) {
+            while let Some(n) = producer
+                .get(at)
+                .filter(|n| n.op_type != "MaxPool" && passes_u8(&n.op_type, &p) && !outputs.contains(at))
+            {
+                plan.path.insert(at.to_string());
                 at = n.input[0].as_str();
             }
-            // A value an integer operator makes is u8 already; any other is quantised where it
-            // is made (a graph input, at the start).
+            // A value an integer operator makes is u8 already.
             if !outputs.contains(at) {
-                roots.insert(at.to_string(), p);
+                plan.roots.insert(at.to_string(), p);
             }
         }
     }
-    roots
+    plan
 }
 
 /// Drop nodes nothing reads (dequantisations no float operator needs, transposes of weights
