@@ -45,7 +45,9 @@ pub struct CompareArgs {
 /// Median and 90th percentile, in milliseconds.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct Stat {
+    /// Median.
     pub median: f64,
+    /// 90th percentile.
     pub p90: f64,
 }
 
@@ -57,57 +59,86 @@ impl Stat {
     }
 }
 
+/// One plan: what it is and how fast it runs.
 #[derive(Debug, Serialize)]
 pub struct PlanReport {
+    /// Plan directory as given.
     pub path: String,
+    /// `fp32` or `int8`.
     pub precision: String,
+    /// Size of the plan's files on disk.
     pub size_mb: f64,
+    /// Time `Plan::load` took (read, check, optimise).
     pub load_ms: f64,
+    /// Peak resident memory of `prl track` with this plan (10 frames, own process).
     pub peak_rss_mb: Option<f64>,
+    /// Sequences the plan was calibrated on (int8 plans).
     pub calibration_sequences: Vec<String>,
+    /// Template network per run.
     pub template_ms: Stat,
+    /// Search network per run.
     pub search_ms: Stat,
+    /// Whole tracking step (crop, search network, post-processing).
     pub step_ms: Stat,
 }
 
 /// Outputs of a plan against the reference plan's on the same held-out crops.
 #[derive(Debug, Serialize)]
 pub struct Fidelity {
+    /// Plan directory as given.
     pub plan: String,
+    /// Held-out search crops compared.
     pub crops: usize,
-    /// ‖out − ref‖ / ‖ref‖ over all crops, for loc, cls1, cls2.
+    /// ‖out − ref‖ / ‖ref‖ of loc over all crops.
     pub loc: f64,
+    /// The same for cls1.
     pub cls1: f64,
+    /// The same for cls2.
     pub cls2: f64,
     /// Share of crops where the best cell (argmax of the penalised score) is the same.
     pub best_cell_agreement: f64,
 }
 
+/// One plan's tracking of one sequence.
 #[derive(Debug, Serialize)]
 pub struct PlanTrack {
+    /// Plan directory as given.
     pub plan: String,
-    /// OPE success AUC and precision at 20 px (when the sequence has ground truth).
+    /// OPE success AUC (when the sequence has ground truth).
     pub auc: Option<f64>,
+    /// OPE precision at 20 px.
     pub precision: Option<f64>,
-    /// Per-frame IoU with the reference plan's boxes (frames after the first).
+    /// Mean per-frame IoU with the reference plan's boxes (frames after the first).
     pub mean_iou_to_ref: f64,
+    /// Share of those frames with IoU over 0.5.
     pub over_05: f64,
+    /// Share of those frames with IoU over 0.9.
     pub over_09: f64,
 }
 
+/// Every plan's tracking of one sequence.
 #[derive(Debug, Serialize)]
 pub struct SequenceReport {
+    /// Sequence name.
     pub sequence: String,
+    /// Frames tracked.
     pub frames: usize,
+    /// One entry per plan, the reference first.
     pub plans: Vec<PlanTrack>,
 }
 
+/// The whole comparison (`--json` writes it).
 #[derive(Debug, Serialize)]
 pub struct Report {
+    /// Threads the networks ran on.
     pub threads: usize,
+    /// Timed runs per plan.
     pub runs: usize,
+    /// The plans, the reference first.
     pub plans: Vec<PlanReport>,
+    /// Every plan but the first against the first.
     pub fidelity: Vec<Fidelity>,
+    /// Tracking, per sequence.
     pub sequences: Vec<SequenceReport>,
 }
 
