@@ -97,10 +97,9 @@ struct Report {
 }
 
 fn stat(stage: &'static str, v: &[Duration]) -> Stat {
-    let mut ms: Vec<f64> = v.iter().map(|d| d.as_secs_f64() * 1e3).collect();
-    ms.sort_by(f64::total_cmp);
-    let at = |q: f64| ms[((ms.len() - 1) as f64 * q).round() as usize];
-    Stat { stage, median_ms: at(0.5), p90_ms: at(0.9), samples_ms: v.iter().map(|d| d.as_secs_f64() * 1e3).collect() }
+    let samples_ms: Vec<f64> = v.iter().map(|d| d.as_secs_f64() * 1e3).collect();
+    let (median_ms, p90_ms) = super::median_p90(&samples_ms);
+    Stat { stage, median_ms, p90_ms, samples_ms }
 }
 
 fn input(seq: Option<&Path>) -> anyhow::Result<(Frame, BBox, String)> {

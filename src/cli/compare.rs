@@ -52,10 +52,9 @@ pub struct Stat {
 }
 
 impl Stat {
-    fn of(mut ms: Vec<f64>) -> Stat {
-        ms.sort_by(f64::total_cmp);
-        let at = |q: f64| ms[((ms.len() - 1) as f64 * q).round() as usize];
-        Stat { median: at(0.5), p90: at(0.9) }
+    fn of(ms: &[f64]) -> Stat {
+        let (median, p90) = super::median_p90(ms);
+        Stat { median, p90 }
     }
 }
 
@@ -241,9 +240,9 @@ pub fn run(a: CompareArgs) -> anyhow::Result<()> {
             size_mb,
             load_ms,
             calibration_sequences,
-            template_ms: Stat::of(tm[i].clone()),
-            search_ms: Stat::of(sm[i].clone()),
-            step_ms: Stat::of(st[i].clone()),
+            template_ms: Stat::of(&tm[i]),
+            search_ms: Stat::of(&sm[i]),
+            step_ms: Stat::of(&st[i]),
         })
         .collect();
     let report = Report { threads, runs: a.runs, plans, fidelity, sequences };

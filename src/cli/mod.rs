@@ -97,6 +97,22 @@ pub fn spinner(msg: &str) -> indicatif::ProgressBar {
     pb
 }
 
+/// Median and 90th percentile of `ms` (nearest rank; `ms` must not be empty).
+pub fn median_p90(ms: &[f64]) -> (f64, f64) {
+    let mut ms = ms.to_vec();
+    ms.sort_by(f64::total_cmp);
+    let at = |q: f64| ms[((ms.len() - 1) as f64 * q).round() as usize];
+    (at(0.5), at(0.9))
+}
+
+/// A plan's manifest alone (no graph is loaded), with errors naming the file.
+pub fn read_plan_manifest(dir: &std::path::Path) -> anyhow::Result<prl_runtime::PlanManifest> {
+    use anyhow::Context;
+    let path = dir.join(prl_runtime::PLAN_MANIFEST);
+    let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the plan manifest", path.display()))?;
+    serde_json::from_slice(&bytes).with_context(|| format!("{}: not a plan manifest", path.display()))
+}
+
 /// A progress bar on stderr with `msg` (hidden when not a terminal).
 pub fn progress_bar(len: u64, msg: &str) -> indicatif::ProgressBar {
     let pb = indicatif::ProgressBar::new(len);

@@ -2,10 +2,10 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context};
+use anyhow::bail;
 use clap::Args;
 use prl_compiler::{compile_int8, BuiltModel, Method, PerChannel, QuantizeOptions, WeightsSource};
-use prl_runtime::{LayerDecision, PlanManifest, QuantizationInfo, TrackerConfig, PLAN_MANIFEST};
+use prl_runtime::{LayerDecision, QuantizationInfo, TrackerConfig, PLAN_MANIFEST};
 use prl_track::{calibration_crops, CalibrationSpec};
 
 use super::compile::{tracker_config, DEFAULT_TRACKER_TOML};
@@ -72,9 +72,7 @@ fn parse_per_channel(s: &str) -> Result<PerChannel, String> {
 /// The fp32 model a plan was compiled from, rebuilt from the weights its manifest records.
 fn model_of_plan(dir: &Path) -> anyhow::Result<(BuiltModel, TrackerConfig)> {
     let path = dir.join(PLAN_MANIFEST);
-    let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the plan manifest", path.display()))?;
-    let m: PlanManifest =
-        serde_json::from_slice(&bytes).with_context(|| format!("{}: not a plan manifest", path.display()))?;
+    let m = super::read_plan_manifest(dir)?;
     if m.precision != "fp32" {
         bail!("{}: the plan is already {}; quantise an fp32 plan", path.display(), m.precision);
     }

@@ -95,10 +95,7 @@ pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.jobs != Some(0), "--jobs must be at least 1");
     let dataset = Dataset::open(&a.dataset, a.format)?;
     // The plan's manifest, read before anything is written: a bad plan leaves no folder behind.
-    let path = a.plan.join(prl_runtime::PLAN_MANIFEST);
-    let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the plan manifest", path.display()))?;
-    let manifest: prl_runtime::PlanManifest =
-        serde_json::from_slice(&bytes).with_context(|| format!("{}: not a plan manifest", path.display()))?;
+    let manifest = super::read_plan_manifest(&a.plan)?;
     let tracker_name = match (&a.tracker, &manifest.variant) {
         (Some(t), _) => t.clone(),
         (None, Some(v)) => format!("prl-track-{}-{v}", manifest.precision),
