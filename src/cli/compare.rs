@@ -191,6 +191,15 @@ pub fn run(a: CompareArgs) -> anyhow::Result<()> {
         let plan = Plan::load(p)?;
         let load_ms = ms(t);
         let m = plan.manifest().clone();
+        if let Some(first) = trackers.first().map(|t: &Tracker| &t.plan().manifest().weights) {
+            if (&first.sha256, first.seed) != (&m.weights.sha256, m.weights.seed) {
+                eprintln!(
+                    "note: {} holds other weights than {}: its differences are not quantisation's",
+                    p.display(),
+                    a.plans[0].display()
+                );
+            }
+        }
         let calibration_sequences =
             m.quantization.as_ref().map(|q| q.calibration.sequences.clone()).unwrap_or_default();
         trackers.push(Tracker::new(plan, m.tracker.clone()));
