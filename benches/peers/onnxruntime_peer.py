@@ -89,6 +89,25 @@ def median(v):
     return statistics.median(v)
 
 
+def ort_int8(search_onnx, feed, out):
+    """ONNX Runtime's own int8 of the search graph: quantize_static, QDQ, per-channel weights,
+    u8 activations, calibrated on the crop prl benchmarked (ranges do not change the latency).
+    Biases stay float: with one calibration crop ORT finds no valid scale for some of them."""
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+
+    class Reader(CalibrationDataReader):
+        def __init__(self):
+            self.items = [feed]
+
+        def get_next(self):
+            return self.items.pop() if self.items else None
+
+    quantize_static(search_onnx, out, Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
+                    activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                    extra_options={"QuantizeBias": False})
+    return out
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--prl", required=True, help="the prl binary")
@@ -97,6 +116,8 @@ def main():
     p.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     p.add_argument("--rounds", type=int, default=5, help="interleaved rounds per thread count")
     p.add_argument("--runs", type=int, default=10, help="timed runs per round and runtime")
+    p.add_argument("--int8-plan", help="an int8 plan of the same model (`prl quantize`): also time its search "
+                   "network against ONNX Runtime's own int8 (quantize_static, QDQ, per-channel) of search.onnx")
     p.add_argument("--json", help="also write the report here")
     p.add_argument("--build-arg", dest="build_args", action="append", default=[],
                    help="passed to `prl build` when the model is built here (e.g. --build-arg=--random-seed=0)")
@@ -107,6 +128,9 @@ def main():
     tdir = os.path.join(work, "tensors")
     sh([args.prl, "bench", "--plan", plan, "--runs", "1", "--top", "0", "--save-tensors", tdir])
     tensors = load_tensors(tdir)
+    if args.int8_plan and weights_sha(os.path.join(args.int8_plan, "plan.json")) != weights_sha(
+            os.path.join(plan, "plan.json")):
+        sys.exit(f"error: {args.int8_plan} does not hold the weights of {plan}")
     print(f"model {model}, plan {plan}; onnxruntime {ort.__version__}; {args.rounds} rounds x {args.runs} runs")
 
     report = {"model": model, "plan": plan, "onnxruntime": ort.__version__, "rounds": args.rounds,
@@ -119,19 +143,30 @@ def main():
         diff = max(agreement(search, sf, tensors), agreement(template, tf, tensors))
         timed(search, sf, 2)
         timed(template, tf, 2)
-        prl = {"template network": [], "search network": []}
-        peer = {"template network": [], "search network": []}
+        prl = {"template network": [], "search network": [], "search network int8": []}
+        peer = {"template network": [], "search network": [], "search network int8": []}
+        if args.int8_plan:
+            q = os.path.join(work, "search-int8.onnx")
+            if not os.path.exists(q):
+                ort_int8(os.path.join(model, "search.onnx"), sf, q)
+            search8 = session(q, threads)
+            timed(search8, sf, 2)
         for r in range(args.rounds):
-            j = os.path.join(work, f"bench-{threads}-{r}.json")
-            sh([args.prl, "bench", "--plan", plan, "--threads", str(threads), "--runs", str(args.runs),
-                "--top", "0", "--json", j])
-            with open(j) as f:
-                for s in json.load(f)["stages"]:
-                    if s["stage"] in prl:
-                        prl[s["stage"]] += s["samples_ms"]
+            plans = [(plan, "")] + ([(args.int8_plan, " int8")] if args.int8_plan else [])
+            for pl, suffix in plans:
+                j = os.path.join(work, f"bench-{threads}-{r}{suffix.strip()}.json")
+                sh([args.prl, "bench", "--plan", pl, "--threads", str(threads), "--runs", str(args.runs),
+                    "--top", "0", "--json", j])
+                with open(j) as f:
+                    for s in json.load(f)["stages"]:
+                        if s["stage"] + suffix in prl and (suffix == "" or s["stage"] == "search network"):
+                            prl[s["stage"] + suffix] += s["samples_ms"]
             peer["template network"] += timed(template, tf, args.runs)
             peer["search network"] += timed(search, sf, args.runs)
-        for stage in ("search network", "template network"):
+            if args.int8_plan:
+                peer["search network int8"] += timed(search8, sf, args.runs)
+        stages = ("search network", "template network") + (("search network int8",) if args.int8_plan else ())
+        for stage in stages:
             a, b = median(prl[stage]), median(peer[stage])
             rows.append((stage, threads, a, b, a / b))
             report["results"].append({"stage": stage, "threads": threads, "prl_median_ms": a,
@@ -140,9 +175,9 @@ def main():
                                       "max_relative_output_difference": diff})
         print(f"{threads} thread(s): outputs agree within {diff:.1e} of their range")
 
-    print(f"\n{'graph':<18} {'threads':>7} {'prl ms':>9} {'ORT ms':>9} {'prl/ORT':>8}")
+    print(f"\n{'graph':<20} {'threads':>7} {'prl ms':>9} {'ORT ms':>9} {'prl/ORT':>8}")
     for stage, threads, a, b, ratio in rows:
-        print(f"{stage:<18} {threads:>7} {a:>9.1f} {b:>9.1f} {ratio:>8.2f}")
+        print(f"{stage:<20} {threads:>7} {a:>9.1f} {b:>9.1f} {ratio:>8.2f}")
     if args.json:
         tmp = args.json + ".tmp"
         with open(tmp, "w") as f:

@@ -4,10 +4,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 venv="${PRL_PEER_VENV:-target/peers/venv}"
-if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c "import onnxruntime, numpy" 2>/dev/null; then
+if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c "import onnxruntime, numpy, onnx" 2>/dev/null; then
     echo "setting up ONNX Runtime in $venv" >&2
     python3 -m venv "$venv"
-    "$venv/bin/pip" install --quiet --upgrade onnxruntime numpy
+    "$venv/bin/pip" install --quiet --upgrade onnxruntime numpy onnx  # onnx: ORT's quantiser needs it
 fi
 cargo build --release --quiet --bin prl
 exec "$venv/bin/python" benches/peers/onnxruntime_peer.py --prl target/release/prl "$@"
