@@ -2,11 +2,9 @@
 
 mod common;
 
-use std::process::{Command, Output};
+use common::prl;
 
-fn prl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_prl")).args(args).current_dir(env!("CARGO_MANIFEST_DIR")).output().unwrap()
-}
+use std::process::Output;
 
 fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).trim().to_string()

@@ -4,8 +4,10 @@
 
 mod common;
 
+use common::{ok, prl};
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use prl_runtime::{LayerDecision, Plan, Tracker};
 use prl_track::{calibration_crops, init_box_from_groundtruth, load_frame, CalibrationSpec, Sequence};
@@ -14,15 +16,6 @@ use prl_track::{calibration_crops, init_box_from_groundtruth, load_frame, Calibr
 /// crops) when calibrated on 4 frames; the README's comparison, on 64 frames, is well inside them.
 const MAX_LOC: f64 = 0.02;
 const MAX_CLS: f64 = 0.25;
-
-fn prl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_prl")).args(args).current_dir(env!("CARGO_MANIFEST_DIR")).output().unwrap()
-}
-
-fn ok(o: &Output) -> String {
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
 
 /// The one-line error of a failed run.
 fn fails(o: &Output) -> String {

@@ -3,19 +3,11 @@
 
 mod common;
 
+use common::{ok, prl};
+
 use std::path::Path;
-use std::process::{Command, Output};
 
 const FRAMES: usize = 5;
-
-fn prl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_prl")).args(args).current_dir(env!("CARGO_MANIFEST_DIR")).output().unwrap()
-}
-
-fn ok(o: &Output) -> String {
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
 
 /// An OTB-style copy of the shared sequences cut to their first `FRAMES` frames.
 fn short_dataset(root: &Path) {

@@ -5,6 +5,7 @@
 
 use std::io::Write;
 use std::path::PathBuf;
+use std::process::{Command, Output};
 
 /// The reference fixture directory: `$PRL_GOLDEN_DIR`, else `../shared/fixtures/prl-golden-v1`.
 pub fn golden_dir() -> PathBuf {
@@ -139,4 +140,15 @@ pub fn reference_plan() -> PathBuf {
         dir
     })
     .clone()
+}
+
+/// Run the `prl` binary with `args` from the repository root.
+pub fn prl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_prl")).args(args).current_dir(env!("CARGO_MANIFEST_DIR")).output().unwrap()
+}
+
+/// The standard output of a run that must have succeeded (its standard error otherwise).
+pub fn ok(o: &Output) -> String {
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    String::from_utf8_lossy(&o.stdout).into_owned()
 }
