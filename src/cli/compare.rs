@@ -8,7 +8,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use clap::Args;
 use prl_runtime::{set_threads, Plan, SearchOutput, Tracker};
-use prl_track::{calibration_crops, init_box_from_groundtruth, iou, load_frame, ope, CalibrationSpec, Sequence};
+use prl_track::{init_box_from_groundtruth, iou, load_frame, ope, CalibrationSpec, Sequence};
 use serde::Serialize;
 
 use super::compare_report::markdown;
@@ -276,13 +276,7 @@ fn fidelity(a: &CompareArgs, seqs: &[Sequence], trackers: &mut [Tracker]) -> any
         seed: 1,
         held_out: true,
     };
-    let bar = super::progress_bar(0, "cutting held-out crops");
-    let crops = calibration_crops(&spec, &config, &mut |d, t| {
-        bar.set_length(t as u64);
-        bar.set_position(d as u64);
-    });
-    bar.finish_and_clear();
-    let crops = crops?;
+    let crops = super::crops_with_progress(&spec, &config, "cutting held-out crops")?;
     let n = trackers.len();
     let mut outs: Vec<Vec<SearchOutput>> = vec![vec![]; n];
     let mut cells: Vec<Vec<usize>> = vec![vec![]; n];

@@ -113,6 +113,21 @@ pub fn read_plan_manifest(dir: &std::path::Path) -> anyhow::Result<prl_runtime::
     serde_json::from_slice(&bytes).with_context(|| format!("{}: not a plan manifest", path.display()))
 }
 
+/// The crops of `spec` (see [`prl_track::calibration_crops`]) behind a progress bar saying `msg`.
+pub fn crops_with_progress(
+    spec: &prl_track::CalibrationSpec,
+    config: &prl_runtime::TrackerConfig,
+    msg: &str,
+) -> anyhow::Result<prl_compiler::Calibration> {
+    let bar = progress_bar(0, msg);
+    let crops = prl_track::calibration_crops(spec, config, &mut |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    });
+    bar.finish_and_clear();
+    Ok(crops?)
+}
+
 /// A progress bar on stderr with `msg` (hidden when not a terminal).
 pub fn progress_bar(len: u64, msg: &str) -> indicatif::ProgressBar {
     let pb = indicatif::ProgressBar::new(len);

@@ -6,7 +6,7 @@ use anyhow::bail;
 use clap::Args;
 use prl_compiler::{compile_int8, BuiltModel, Method, PerChannel, QuantizeOptions, WeightsSource};
 use prl_runtime::{LayerDecision, QuantizationInfo, TrackerConfig, PLAN_MANIFEST};
-use prl_track::{calibration_crops, CalibrationSpec};
+use prl_track::CalibrationSpec;
 
 use super::compile::{tracker_config, DEFAULT_TRACKER_TOML};
 
@@ -116,13 +116,7 @@ pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
         seed: a.seed,
         held_out: false,
     };
-    let bar = super::progress_bar(0, "cutting calibration crops");
-    let calib = calibration_crops(&spec, &tracker, &mut |done, total| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
-    });
-    bar.finish_and_clear();
-    let calib = calib?;
+    let calib = super::crops_with_progress(&spec, &tracker, "cutting calibration crops")?;
     let opts = QuantizeOptions {
         method: a.method,
         per_channel: a.per_channel,
