@@ -132,33 +132,35 @@ fn builder_errors_name_the_node() {
     assert!(err.contains("node `sum`") && err.contains("unknown value `y`"), "{err}");
 }
 
-/// The Toeplitz form of the depthwise correlation equals the direct depthwise convolution.
+/// The correlation with the template as kernel (run by `prl_runtime::DepthwiseXCorr`) equals
+/// tract's own depthwise convolution with the same kernel as a constant, and a sum by hand; the
+/// 75-wide input gives two strips of output columns (64 + 9).
 #[test]
-fn toeplitz_correlation_equals_depthwise_convolution() {
-    use prl_compiler::net::{toeplitz_kernel, toeplitz_xcorr};
-    let (c, k, h, w) = (3usize, 3usize, 6usize, 7usize);
+fn depthwise_correlation_equals_tract_convolution() {
+    use prl_compiler::onnx::ConvOpts;
+    let (c, k, h, w) = (3usize, 3usize, 6usize, 75usize);
+    let xv: Vec<f32> = (0..c * h * w).map(|i| ((i * 13 % 17) as f32 - 8.0) / 3.0).collect();
+    let zv: Vec<f32> = (0..c * k * k).map(|i| ((i * 7 % 11) as f32 - 5.0) / 2.0).collect();
     let mut g = Graph::new("xcorr");
     let x = g.input("x", &[1, c, h, w]).unwrap();
     let z = g.input("z", &[1, c, k, k]).unwrap();
-    let direct = g.depthwise_xcorr("direct", &x, &z, c, k).unwrap();
-    let t = toeplitz_kernel(&mut g, "t", &z, c, k, w).unwrap();
-    let fast = toeplitz_xcorr(&mut g, "fast", &x, &t, c, k, h, w).unwrap();
+    let ours = g.depthwise_xcorr("ours", &x, &z, c, k).unwrap();
+    let kernel = g.constant("kernel", &Tensor::new(vec![c, 1, k, k], zv.clone())).unwrap();
+    let tract = g.conv("tract", &x, &kernel, None, ConvOpts { group: c, ..Default::default() }).unwrap();
     let out = [1, c, h - k + 1, w - k + 1];
-    g.output(&direct, &out).unwrap();
-    g.output(&fast, &out).unwrap();
-    let xs: &'static [usize] = &[1, 3, 6, 7];
+    g.output(&ours, &out).unwrap();
+    g.output(&tract, &out).unwrap();
+    let xs: &'static [usize] = &[1, 3, 6, 75];
     let zs: &'static [usize] = &[1, 3, 3, 3];
     let specs = [TensorSpec { name: "x", shape: xs }, TensorSpec { name: "z", shape: zs }];
     let r = OnnxRunner::new(&g.encode("xcorr"), "xcorr", &specs, None).unwrap();
-    let xv: Vec<f32> = (0..c * h * w).map(|i| ((i * 13 % 17) as f32 - 8.0) / 3.0).collect();
-    let zv: Vec<f32> = (0..c * k * k).map(|i| ((i * 7 % 11) as f32 - 5.0) / 2.0).collect();
     let outs = r.run(&[&Tensor::new(xs.to_vec(), xv.clone()), &Tensor::new(zs.to_vec(), zv.clone())]).unwrap();
-    // By hand for one cell: channel 1, output (2, 3).
+    // By hand for one cell: channel 1, output (2, 70) (in the second strip).
     let by_hand: f32 = (0..k)
         .flat_map(|u| (0..k).map(move |v| (u, v)))
-        .map(|(u, v)| xv[(h + 2 + u) * w + 3 + v] * zv[k * k + u * k + v])
+        .map(|(u, v)| xv[(h + 2 + u) * w + 70 + v] * zv[k * k + u * k + v])
         .sum();
-    let at = (h - k + 1) * (w - k + 1) + 2 * (w - k + 1) + 3;
+    let at = (h - k + 1) * (w - k + 1) + 2 * (w - k + 1) + 70;
     close(&[outs[0].data[at]], &[by_hand]);
-    close(&outs[1].data, &outs[0].data);
+    close(&outs[0].data, &outs[1].data);
 }

@@ -151,8 +151,13 @@ fn int8_plan_runs_integer_kernels_near_fp32_and_compares() {
     assert!(seq[1]["auc"].as_f64().unwrap() >= 0.0);
 }
 
+/// An attention product of two activations (`q·kᵀ` of HMG's first block), in the ONNX graph
+/// and in tract's optimised graph.
+const SCORES: &str = "hmg.blocks.0.attn.cross.x3.scores";
+const SCORES_NODE: &str = "hmg_blocks_0_attn_cross_x3";
+
 #[test]
-fn every_method_works_keep_fp32_keeps_layers_in_f32_and_act_matmul_adds_s1() {
+fn every_method_works_keep_fp32_keeps_layers_in_f32_and_act_matmul_adds_attention() {
     let fp32 = common::reference_plan();
     let t = tempfile::tempdir().unwrap();
     let calib = shared("wakeboard7");
@@ -178,14 +183,14 @@ fn every_method_works_keep_fp32_keeps_layers_in_f32_and_act_matmul_adds_s1() {
             assert_eq!(decision("hmg.blocks.0.mlp.fc1.matmul"), LayerDecision::KeptByUser);
             assert!(!kernels.iter().any(|n| n.starts_with("backbone_layer3")), "{kernels:?}");
             assert!(!kernels.iter().any(|n| n.starts_with("hmg_blocks_0_mlp_fc1")), "{kernels:?}");
-            assert_eq!(decision("s1.matmul"), LayerDecision::ActivationProduct);
-            assert!(!kernels.iter().any(|n| n.starts_with("s1_matmul")), "{kernels:?}");
+            assert_eq!(decision(SCORES), LayerDecision::ActivationProduct);
+            assert!(!kernels.iter().any(|n| n.starts_with(SCORES_NODE)), "{kernels:?}");
         } else {
             assert_eq!(decision("backbone.layer3.conv"), LayerDecision::Int8);
             assert!(kernels.iter().any(|n| n.starts_with("backbone_layer3")), "{kernels:?}");
-            // With --act-matmul the s1 correlation multiplies on the integer kernels too.
-            assert_eq!(decision("s1.matmul"), LayerDecision::Int8);
-            assert!(kernels.iter().any(|n| n.starts_with("s1_matmul")), "{kernels:?}");
+            // With --act-matmul the attention products multiply on the integer kernels too.
+            assert_eq!(decision(SCORES), LayerDecision::Int8);
+            assert!(kernels.iter().any(|n| n.starts_with(SCORES_NODE)), "{kernels:?}");
         }
     }
 }

@@ -114,7 +114,7 @@ fn bench_reports_stages_and_operators() {
     let index: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("tensors/tensors.json")).unwrap()).unwrap();
     let names: Vec<&String> = index.as_object().unwrap().keys().collect();
-    assert_eq!(names.len(), 10, "z, x, zt1, zf2..zf5, loc, cls1, cls2: {names:?}");
+    assert_eq!(names.len(), 10, "z, x, zf1..zf5, loc, cls1, cls2: {names:?}");
     for (name, shape) in index.as_object().unwrap() {
         let n: u64 = shape.as_array().unwrap().iter().map(|d| d.as_u64().unwrap()).product();
         let len = std::fs::metadata(dir.path().join(format!("tensors/{name}.f32"))).unwrap().len();

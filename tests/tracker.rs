@@ -108,6 +108,16 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
     let dir = common::golden_dir();
     let golden = read_golden(&dir.join("golden.safetensors")).unwrap();
     let plan = Plan::load(common::reference_plan()).unwrap();
+    // The five correlations and the stride-1 convolutions run as the runtime's own operators.
+    let nodes = plan.search_nodes();
+    let named = |op: &str| -> Vec<String> { nodes.iter().filter(|n| n.op == op).map(|n| n.name.clone()).collect() };
+    let mut xcorr = named("DepthwiseXCorr");
+    xcorr.sort();
+    assert_eq!(xcorr, ["s1_conv", "s2_conv", "s3_conv", "s4_conv", "s5_conv"]);
+    let convs = named("PackedConv");
+    for layer in ["layer1", "layer2", "layer3", "layer4"] {
+        assert!(convs.iter().any(|n| n.contains(layer)), "{layer} in {convs:?}");
+    }
     let zf = plan.template(&golden["z"].data).unwrap();
     let out = plan.search(&golden["x"].data, &zf).unwrap();
     for (name, ours) in [("loc", &out.loc), ("cls1", &out.cls1), ("cls2", &out.cls2)] {

@@ -40,7 +40,13 @@ impl OnnxRunner {
         let knobs = crate::plan::optimizer_knobs();
         let knobs = tract_onnx::tract_core::knobs::KnobScope::new(knobs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
             .map_err(err)?;
-        let model = knobs.enter(|| model.into_optimized()).map_err(err)?;
+        let model = knobs
+            .enter(|| {
+                let mut model = model.into_typed()?.into_decluttered()?;
+                prl_runtime::accelerate(&mut model)?;
+                model.into_optimized()
+            })
+            .map_err(err)?;
         let plan = tp::TypedSimplePlan::new(model).map_err(err)?;
         Ok(OnnxRunner { plan, context: context.to_string(), inputs: inputs.to_vec(), outputs: names })
     }

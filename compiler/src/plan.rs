@@ -86,7 +86,8 @@ impl CompiledPlan {
     }
 }
 
-/// Decluttered NNEF of one ONNX graph, as a tar archive.
+/// Decluttered NNEF of one ONNX graph, as a tar archive (tract's standard operators: the
+/// runtime's own ones are put in when a plan is loaded, see `prl_runtime::accelerate`).
 fn to_nnef(onnx: &[u8], info: &GraphInfo, context: &str) -> Result<Vec<u8>> {
     let err = |e: tp::TractError| Error::tract(context, format!("{e:#}").replace('\n', " "));
     let mut model = tract_onnx::onnx().model_for_read(&mut &*onnx).map_err(err)?;

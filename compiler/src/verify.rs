@@ -110,17 +110,9 @@ pub fn verify(weights: &Weights, golden: &BTreeMap<String, Tensor>, tolerance: f
                 .collect();
             if !wanted.is_empty() {
                 let names: Vec<&str> = wanted.iter().map(|s| s.name).collect();
-                // The search graph takes layer 1 as its Toeplitz kernel: made from zf1 here.
-                let kernel = OnnxRunner::new(
-                    &net::kernel_graph()?.encode(""),
-                    "layer-1 kernel graph",
-                    &net::TEMPLATE_FEATURES[..1],
-                    None,
-                )?;
-                let zt1 = kernel.run(&[&zf[0]])?.remove(0);
                 let runner =
                     OnnxRunner::new(&network.search.encode(""), "search graph", &net::search_inputs(), Some(&names))?;
-                let args: Vec<&Tensor> = [x, &zt1].into_iter().chain(&zf[1..]).collect();
+                let args: Vec<&Tensor> = std::iter::once(x).chain(&zf).collect();
                 for (spec, out) in wanted.iter().zip(runner.run(&args)?) {
                     compare(spec, &out);
                 }

@@ -241,6 +241,13 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             )));
         }
     }
-    let model = knobs.enter(|| model.into_optimized()).map_err(tract_err)?;
+    let model = knobs
+        .enter(|| {
+            // Declutter first: constants reach the convolutions' weight and bias inputs.
+            let mut model = model.into_decluttered()?;
+            crate::accelerate(&mut model)?;
+            model.into_optimized()
+        })
+        .map_err(tract_err)?;
     TypedSimplePlan::new(model).map_err(tract_err)
 }

@@ -49,8 +49,8 @@ pub struct QuantizeArgs {
     /// Layers with fewer multiply-adds per frame stay f32.
     #[arg(long, value_name = "MACS", default_value_t = QuantizeOptions::default().min_macs)]
     min_macs: u64,
-    /// Also quantise products of two activations (the `s1` correlation, attention); measured
-    /// no faster than f32 today, since both sides are quantised every frame.
+    /// Also quantise products of two activations (HMG's attention); measured no faster than
+    /// f32 today, since both sides are quantised every frame.
     #[arg(long)]
     act_matmul: bool,
     /// Seed of the calibration crops' jitter.

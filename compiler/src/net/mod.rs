@@ -7,12 +7,10 @@ mod hmg;
 mod layers;
 mod regulators;
 mod variant;
-mod xcorr;
 
 pub use hmg::{hierarchical_attention, sincos_pos_embed};
 pub use regulators::{lip2d, nearest_indices, upsample_nearest};
 pub use variant::Variant;
-pub use xcorr::{toeplitz_kernel, toeplitz_xcorr};
 
 use crate::onnx::Graph;
 use crate::weights::Weights;
@@ -46,12 +44,8 @@ pub const TEMPLATE_FEATURES: [TensorSpec; 5] = [
     t("zf4", &[1, 384, 8, 8]),
     t("zf5", &[1, 256, 6, 6]),
 ];
-/// Layer 1's template feature as the Toeplitz kernel of the `s1` correlation (29x29 kernel over
-/// 69 columns): computed once per target, so the per-frame correlation is one matrix product.
-pub const TEMPLATE_KERNEL1: TensorSpec = t("zt1", &[96, 29 * 69, 41]);
 /// Template graph outputs, which are the search graph's inputs after `x`.
-pub const TEMPLATE_OUTPUTS: [TensorSpec; 5] =
-    [TEMPLATE_KERNEL1, TEMPLATE_FEATURES[1], TEMPLATE_FEATURES[2], TEMPLATE_FEATURES[3], TEMPLATE_FEATURES[4]];
+pub const TEMPLATE_OUTPUTS: [TensorSpec; 5] = TEMPLATE_FEATURES;
 /// Search graph image input.
 pub const SEARCH_INPUT: TensorSpec = t("x", &[1, 3, SEARCH_SIZE, SEARCH_SIZE]);
 /// Search graph outputs.
@@ -82,9 +76,9 @@ pub fn search_inputs() -> Vec<TensorSpec> {
 
 /// The two graphs of the network.
 pub struct Network {
-    /// `z` -> `zt1`, `zf2..zf5`.
+    /// `z` -> `zf1..zf5`.
     pub template: Graph,
-    /// `x`, `zt1`, `zf2..zf5` -> `loc`, `cls1`, `cls2`.
+    /// `x`, `zf1..zf5` -> `loc`, `cls1`, `cls2`.
     pub search: Graph,
 }
 
@@ -103,26 +97,10 @@ pub fn template_graph(weights: &Weights) -> Result<Graph> {
     let w = weights.root();
     let mut g = Graph::new("prl_track_template");
     let z = g.input(TEMPLATE_INPUT.name, TEMPLATE_INPUT.shape)?;
-    let mut feats = backbone::backbone(&mut g, &w.pp("backbone"), &z, TEMPLATE_INPUT.shape[3], "zf")?;
-    feats[0] = layer1_kernel(&mut g, &feats[0])?;
+    let feats = backbone::backbone(&mut g, &w.pp("backbone"), &z, TEMPLATE_INPUT.shape[3], "zf")?;
     for (f, spec) in feats.iter().zip(TEMPLATE_OUTPUTS) {
         g.output(f, spec.shape)?;
     }
-    Ok(g)
-}
-
-fn layer1_kernel(g: &mut Graph, zf1: &crate::onnx::Value) -> Result<crate::onnx::Value> {
-    let [_, c, k, _] = TEMPLATE_FEATURES[0].shape else { unreachable!("rank 4") };
-    xcorr::toeplitz_kernel(g, TEMPLATE_KERNEL1.name, zf1, *c, *k, SEARCH_STAGES[0].shape[3])
-}
-
-/// `zf1` -> `zt1`: the layer-1 kernel of given template features (to feed the search graph
-/// with features computed elsewhere, such as golden tensors).
-pub fn kernel_graph() -> Result<Graph> {
-    let mut g = Graph::new("prl_track_layer1_kernel");
-    let zf1 = g.input(TEMPLATE_FEATURES[0].name, TEMPLATE_FEATURES[0].shape)?;
-    let zt1 = layer1_kernel(&mut g, &zf1)?;
-    g.output(&zt1, TEMPLATE_KERNEL1.shape)?;
     Ok(g)
 }
 
@@ -139,14 +117,14 @@ pub fn search_variant(weights: &Weights, variant: Variant) -> Result<Graph> {
     let x = g.input(SEARCH_INPUT.name, SEARCH_INPUT.shape)?;
     let zf = TEMPLATE_OUTPUTS.iter().map(|s| g.input(s.name, s.shape)).collect::<Result<Vec<_>>>()?;
     let xf = backbone::backbone(&mut g, &w.pp("backbone"), &x, SEARCH_INPUT.shape[3], "xf")?;
-    // s1 (29x29 kernel) as one matrix product against the template's Toeplitz kernel; the small
-    // kernels of s2..s5 as depthwise convolutions.
-    let [_, c, h, wd] = SEARCH_STAGES[0].shape else { unreachable!("rank 4") };
-    let mut s = vec![xcorr::toeplitz_xcorr(&mut g, "s1", &xf[0], &zf[0], *c, TEMPLATE_FEATURES[0].shape[2], *h, *wd)?];
-    for i in 1..5 {
-        let spec = TEMPLATE_FEATURES[i];
-        s.push(g.depthwise_xcorr(&format!("s{}", i + 1), &xf[i], &zf[i], spec.shape[1], spec.shape[2])?);
-    }
+    // The five correlations as the official code writes them: depthwise convolutions whose
+    // kernels are the template features (tract runs them as `prl_runtime::DepthwiseXCorr`).
+    let s = (0..5)
+        .map(|i| {
+            let spec = TEMPLATE_FEATURES[i];
+            g.depthwise_xcorr(&format!("s{}", i + 1), &xf[i], &zf[i], spec.shape[1], spec.shape[2])
+        })
+        .collect::<Result<Vec<_>>>()?;
     let gw = w.pp("grader");
     let ar = if variant.ar() {
         regulators::appearance_regulator(&mut g, &gw.pp("ar"), "ar", &s[2], &s[0], &s[1])?

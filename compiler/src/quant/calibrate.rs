@@ -61,7 +61,7 @@ pub(crate) fn observe(
     names.sort();
     names.dedup();
     let inputs = net::search_inputs();
-    // Graph inputs read by a layer (the template's `zt1`) are observed in the template features.
+    // Graph inputs read directly by a layer would be observed in the template features.
     let fed: Vec<usize> = (1..inputs.len()).filter(|&i| names.contains(&inputs[i].name)).collect();
     names.retain(|n| !inputs.iter().any(|i| i.name == *n));
     if names.is_empty() {

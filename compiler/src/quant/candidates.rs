@@ -13,8 +13,8 @@ pub enum Kind {
     Conv,
     /// `MatMul` with a constant right-hand side -> `QLinearMatMul`.
     MatMul,
-    /// `MatMul` of two activations (the `s1` correlation against the template's Toeplitz
-    /// kernel, attention) -> `QLinearMatMul` with both sides quantised at run time.
+    /// `MatMul` of two activations (HMG's attention products) -> `QLinearMatMul` with both
+    /// sides quantised at run time.
     ActMatMul,
 }
 

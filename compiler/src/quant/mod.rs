@@ -85,7 +85,7 @@ pub struct QuantizeOptions {
     /// eager im2col and zero-point column sums per input element, which only enough output
     /// channels amortise (layer 1, 96 channels, measured about 2x slower in int8 than in f32).
     pub min_out_channels: usize,
-    /// Also quantise products of two activations (the `s1` correlation, attention).
+    /// Also quantise products of two activations (HMG's attention).
     pub act_matmul: bool,
     /// Calibration crops the sensitivity pass measures on.
     pub sensitivity_crops: usize,

@@ -1,0 +1,259 @@
+//! Stride-1 float convolutions with constant weights as [`PackedConv`], a direct convolution
+//! whose weights are packed once, when the plan is loaded ([`super::conv_kernel`]).
+//!
+//! tract runs these convolutions as an im2col and a matrix product with the whole reduction
+//! (`k` = 2400 for backbone layer 2) in one pass, which here reached 25-60 GFLOP/s on one core
+//! against about 100 for ONNX Runtime. The direct form reads every tap's inputs in place, with
+//! no im2col buffer and no packing of the activations.
+
+use std::sync::Arc;
+
+use tract_nnef::internal::*;
+use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat, PaddingSpec};
+use tract_nnef::tract_core::ops::nn::DataFormat;
+
+use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
+use super::par_chunks;
+
+/// Shape of one convolution: input `[N, ci, h, w]`, padding, kernel `kh` x `kw`, `co` outputs.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct ConvShape {
+    /// Input channels, rows, columns.
+    pub ci: usize,
+    pub h: usize,
+    pub w: usize,
+    /// Output channels.
+    pub co: usize,
+    /// Kernel rows and columns.
+    pub kh: usize,
+    pub kw: usize,
+    /// Zero padding: top, left, bottom, right.
+    pub pad: [usize; 4],
+}
+
+impl ConvShape {
+    fn padded(&self) -> (usize, usize) {
+        (self.h + self.pad[0] + self.pad[2], self.w + self.pad[1] + self.pad[3])
+    }
+
+    fn out(&self) -> (usize, usize) {
+        let (hp, wp) = self.padded();
+        (hp - self.kh + 1, wp - self.kw + 1)
+    }
+}
+
+/// `out[n,o,y,x] = bias[o] + Σ_{c,i,j} pad(input)[n,c,y+i,x+j]·weight[o,c,i,j]`, stride 1, with
+/// the weights packed `[o / 8][(c,i,j)][o % 8]` when the op is made.
+#[derive(Clone)]
+pub struct PackedConv {
+    shape: ConvShape,
+    layout: Arc<Layout>,
+    weights: Arc<Vec<f32>>,
+    bias: Arc<Vec<f32>>,
+}
+
+impl std::fmt::Debug for PackedConv {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PackedConv({:?})", self.shape)
+    }
+}
+
+impl PartialEq for PackedConv {
+    fn eq(&self, other: &Self) -> bool {
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        self.shape == other.shape
+            && bits(&self.weights) == bits(&other.weights)
+            && bits(&self.bias) == bits(&other.bias)
+    }
+}
+
+impl Eq for PackedConv {}
+
+impl PackedConv {
+    /// Pack OIHW `weight` ([co, ci, kh, kw], row-major) and `bias` (one value or `co`).
+    pub fn new(shape: ConvShape, weight: &[f32], bias: &[f32]) -> TractResult<PackedConv> {
+        let taps = shape.ci * shape.kh * shape.kw;
+        ensure!(weight.len() == shape.co * taps, "PackedConv: {} weights for {shape:?}", weight.len());
+        ensure!(bias.len() == 1 || bias.len() == shape.co, "PackedConv: {} bias values for {shape:?}", bias.len());
+        let blocks = shape.co.div_ceil(ROWS);
+        let mut packed = vec![0f32; blocks * taps * ROWS];
+        for (o, w) in weight.chunks_exact(taps).enumerate() {
+            let block = &mut packed[(o / ROWS) * taps * ROWS..];
+            for (t, &v) in w.iter().enumerate() {
+                block[t * ROWS + o % ROWS] = v;
+            }
+        }
+        let bias: Vec<f32> =
+            (0..blocks * ROWS).map(|o| if bias.len() == 1 { bias[0] } else { *bias.get(o).unwrap_or(&0.0) }).collect();
+        let (hp, wp) = shape.padded();
+        let (oh, ow) = shape.out();
+        let offsets = (0..shape.ci)
+            .flat_map(|c| (0..shape.kh).flat_map(move |i| (0..shape.kw).map(move |j| (c * hp + i) * wp + j)));
+        let layout = Layout { taps: offsets.collect(), wp, oh, ow };
+        Ok(PackedConv { shape, layout: Arc::new(layout), weights: Arc::new(packed), bias: Arc::new(bias) })
+    }
+
+    /// The convolution's shape.
+    pub fn shape(&self) -> &ConvShape {
+        &self.shape
+    }
+}
+
+impl Op for PackedConv {
+    fn name(&self) -> StaticName {
+        "PackedConv".into()
+    }
+
+    fn info(&self) -> TractResult<Vec<String>> {
+        let s = &self.shape;
+        Ok(vec![format!("{}x{} kernel, {} -> {} channels, pad {:?}", s.kh, s.kw, s.ci, s.co, s.pad)])
+    }
+
+    op_as_typed_op!();
+}
+
+impl EvalOp for PackedConv {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let input = args_1!(inputs);
+        let s = &self.shape;
+        let &[n, ci, h, w] = input.shape() else { bail!("PackedConv: input {:?} is not rank 4", input.shape()) };
+        ensure!((ci, h, w) == (s.ci, s.h, s.w), "PackedConv: input {:?} for {s:?}", input.shape());
+        let input = input.try_as_plain_ram()?;
+        let input = input.as_slice::<f32>()?;
+        let (hp, wp) = s.padded();
+        let (oh, ow) = s.out();
+        let plane = oh * ow;
+        let taps = s.ci * s.kh * s.kw;
+        let mut out = vec![0f32; n * s.co * plane];
+        let mut padded = vec![0f32; ci * hp * wp + MAX_PX + wp];
+        for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
+            for (c, src) in src.chunks_exact(h * w).enumerate() {
+                for (y, row) in src.chunks_exact(w).enumerate() {
+                    let at = (c * hp + y + s.pad[0]) * wp + s.pad[1];
+                    padded[at..at + w].copy_from_slice(row);
+                }
+            }
+            par_chunks(dst, ROWS * plane, |b, out| {
+                let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
+                let bias: &[f32; ROWS] = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
+                channel_block(&self.layout, &padded, weights, bias, out);
+            });
+        }
+        let out = tract_ndarray::Array4::from_shape_vec((n, s.co, oh, ow), out)?;
+        Ok(tvec!(out.into_tensor().into_tvalue()))
+    }
+}
+
+impl TypedOp for PackedConv {
+    fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        let (oh, ow) = self.shape.out();
+        Ok(tvec!(f32::fact([inputs[0].shape[0].clone(), self.shape.co.into(), oh.into(), ow.into()])))
+    }
+
+    fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
+        let (oh, ow) = self.shape.out();
+        let s = &self.shape;
+        let macs = s.co * oh * ow * s.ci * s.kh * s.kw;
+        Ok(tvec!((Cost::FMA(f32::datum_type()), inputs[0].shape[0].clone() * macs)))
+    }
+
+    as_op!();
+}
+
+/// The [`PackedConv`] for `node` of `model` if it is a float convolution with stride and
+/// dilation 1, one group, constant weights and bias, NCHW, and a kernel larger than 1x1.
+pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedConv>> {
+    let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
+    let facts = model.node_input_facts(node.id)?;
+    let ps = &conv.pool_spec;
+    let ones = |v: &Option<TVec<usize>>| v.as_ref().is_none_or(|v| v.iter().all(|&s| s == 1));
+    let pad = match &ps.padding {
+        PaddingSpec::Valid => [0; 4],
+        PaddingSpec::Explicit(b, a) | PaddingSpec::ExplicitOnnxPool(b, a, _) if b.len() == 2 && a.len() == 2 => {
+            [b[0], b[1], a[0], a[1]]
+        }
+        _ => return Ok(None),
+    };
+    let plain = conv.q_params.is_none()
+        && conv.kernel_fmt == KernelFormat::OIHW
+        && ps.data_format == DataFormat::NCHW
+        && ps.kernel_shape.len() == 2
+        && ps.kernel_shape.iter().product::<usize>() > 1
+        && conv.group == 1
+        && ones(&ps.strides)
+        && ones(&ps.dilations)
+        && facts.len() == 3
+        && facts.iter().all(|f| f.datum_type == f32::datum_type());
+    if !plain {
+        return Ok(None);
+    }
+    let (Some(weight), Some(bias)) = (&facts[1].konst, &facts[2].konst) else { return Ok(None) };
+    let Some(&[_, ci, h, w]) = facts[0].shape.as_concrete() else { return Ok(None) };
+    let shape = ConvShape { ci, h, w, co: ps.output_channels, kh: ps.kernel_shape[0], kw: ps.kernel_shape[1], pad };
+    let (weight, bias) = (weight.try_as_plain_ram()?, bias.try_as_plain_ram()?);
+    Ok(Some(PackedConv::new(shape, weight.as_slice::<f32>()?, bias.as_slice::<f32>()?)?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn direct(s: &ConvShape, input: &[f32], weight: &[f32], bias: &[f32]) -> Vec<f32> {
+        let (oh, ow) = s.out();
+        let at = |c: usize, y: usize, x: usize| -> f64 {
+            let (y, x) = (y as isize - s.pad[0] as isize, x as isize - s.pad[1] as isize);
+            if y < 0 || x < 0 || y >= s.h as isize || x >= s.w as isize {
+                0.0
+            } else {
+                input[(c * s.h + y as usize) * s.w + x as usize] as f64
+            }
+        };
+        let mut out = vec![];
+        for o in 0..s.co {
+            for y in 0..oh {
+                for x in 0..ow {
+                    let mut acc = bias[o] as f64;
+                    for c in 0..s.ci {
+                        for i in 0..s.kh {
+                            for j in 0..s.kw {
+                                acc += at(c, y + i, x + j) * weight[((o * s.ci + c) * s.kh + i) * s.kw + j] as f64;
+                            }
+                        }
+                    }
+                    out.push(acc as f32);
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn equals_the_direct_sum_with_padding_and_a_partial_channel_block() {
+        // 11 output channels: one whole block of 8 and a partial one; 3 taps chunks of 128 for
+        // the 300-tap layer; outputs of 1 to 2 tiles.
+        for s in [
+            ConvShape { ci: 3, h: 9, w: 7, co: 11, kh: 3, kw: 3, pad: [1, 1, 1, 1] },
+            ConvShape { ci: 12, h: 14, w: 14, co: 8, kh: 5, kw: 5, pad: [0; 4] },
+            ConvShape { ci: 5, h: 6, w: 40, co: 3, kh: 2, kw: 4, pad: [0, 2, 1, 0] },
+        ] {
+            let n_in = s.ci * s.h * s.w;
+            let n_w = s.co * s.ci * s.kh * s.kw;
+            let input: Vec<f32> = (0..2 * n_in).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
+            let weight: Vec<f32> = (0..n_w).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+            let bias: Vec<f32> = (0..s.co).map(|o| o as f32 / 4.0).collect();
+            let op = PackedConv::new(s.clone(), &weight, &bias).unwrap();
+            let x = tract_ndarray::Array4::from_shape_vec((2, s.ci, s.h, s.w), input.clone()).unwrap();
+            let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();
+            let out = out[0].try_as_plain_ram().unwrap();
+            let out = out.as_slice::<f32>().unwrap();
+            let per_image = out.len() / 2;
+            for (n, got) in out.chunks_exact(per_image).enumerate() {
+                let want = direct(&s, &input[n * n_in..(n + 1) * n_in], &weight, &bias);
+                let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+                assert!(worst < 1e-4, "{s:?} image {n}: off by {worst}");
+            }
+        }
+    }
+}

@@ -1,0 +1,176 @@
+//! The inner loop of [`super::conv::PackedConv`]: a direct convolution with no im2col.
+//!
+//! The input is copied once into a zero-padded buffer `[C, Hp, Wp]`. Output position
+//! `p = y·Wp + x` ("wide" rows: the last `kw − 1` columns of each row are computed and dropped)
+//! reads tap `(c, i, j)` at `p + c·Hp·Wp + i·Wp + j`, so a tile of consecutive positions reads
+//! consecutive input values for every tap, across row ends. A tile is `ROWS` output channels by
+//! `PX` positions held in registers; the weights are packed `[channel block][tap][ROWS]`.
+//! Every output value is its bias plus the sum over taps in (c, i, j) order.
+
+/// Output channels per tile (the packing's block).
+pub(crate) const ROWS: usize = 8;
+/// Positions per tile of the widest kernel (two AVX-512 registers).
+pub(crate) const MAX_PX: usize = 32;
+
+/// Where the taps and outputs of one convolution lie.
+#[derive(Debug, Clone)]
+pub(crate) struct Layout {
+    /// Input offset of every tap `(c, i, j)` in the padded buffer, in packing order.
+    pub taps: Vec<usize>,
+    /// Row stride of the padded input (`Wp`).
+    pub wp: usize,
+    /// Output rows and columns.
+    pub oh: usize,
+    pub ow: usize,
+}
+
+impl Layout {
+    /// Wide positions covering every output: `(oh − 1)·Wp + ow`.
+    pub fn positions(&self) -> usize {
+        (self.oh - 1) * self.wp + self.ow
+    }
+}
+
+/// One block of `ROWS` output channels (fewer in `out` for the last block: `out` holds
+/// `out.len() / (oh·ow)` planes): `out[r] = bias[r] + conv(padded, weights[r])`. `padded` must
+/// extend `MAX_PX` values past the last tap of the last position.
+pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
+    assert!(weights.len() == l.taps.len() * ROWS);
+    assert!(l.taps.iter().all(|&t| t + l.positions() + MAX_PX <= padded.len()));
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") {
+        // SAFETY: the CPU has AVX-512F; every load stays in `padded` and `weights` (asserted).
+        unsafe { positions_avx512(l, padded, weights, bias, out) };
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has the features the function is compiled for.
+        unsafe { positions_avx2_fma(l, padded, weights, bias, out) };
+        return;
+    }
+    positions::<{ cfg!(target_arch = "aarch64") }>(l, padded, weights, bias, out);
+}
+
+/// Write a tile's `acc[r][q]` (position `p0 + q`) to the output planes, dropping the wide
+/// columns and the positions past the end.
+#[inline(always)]
+fn scatter<const PX: usize>(l: &Layout, acc: &[[f32; PX]; ROWS], bias: &[f32; ROWS], p0: usize, out: &mut [f32]) {
+    let plane = l.oh * l.ow;
+    let rows = out.len() / plane;
+    let (mut y, mut x) = (p0 / l.wp, p0 % l.wp);
+    for q in 0..PX.min(l.positions() - p0) {
+        if x < l.ow {
+            let at = y * l.ow + x;
+            for r in 0..rows {
+                out[r * plane + at] = acc[r][q] + bias[r];
+            }
+        }
+        x += 1;
+        if x == l.wp {
+            (y, x) = (y + 1, 0);
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn positions_avx2_fma(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
+    positions::<true>(l, padded, weights, bias, out)
+}
+
+/// Portable tiles of 8 positions, vectorised by the compiler. `FUSED`: fused multiply-add
+/// (only where the target has it in hardware).
+#[inline(always)]
+fn positions<const FUSED: bool>(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
+    const PX: usize = 8;
+    for p0 in (0..l.positions()).step_by(PX) {
+        let mut acc = [[0f32; PX]; ROWS];
+        for (&t, w) in l.taps.iter().zip(weights.chunks_exact(ROWS)) {
+            let xs: &[f32; PX] = padded[t + p0..t + p0 + PX].try_into().expect("PX values");
+            for (a, &w) in acc.iter_mut().zip(w) {
+                for (a, &x) in a.iter_mut().zip(xs) {
+                    *a = if FUSED { w.mul_add(x, *a) } else { w * x + *a };
+                }
+            }
+        }
+        scatter(l, &acc, bias, p0, out);
+    }
+}
+
+/// Tiles of 32 positions: 16 AVX-512 accumulators, two input loads and eight broadcasts per
+/// tap. The taps are taken `CHUNK` at a time over every tile, the partial sums kept in `sums`:
+/// a chunk's weights stay in L1 and the input rows one tile reads are still there for the next.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn positions_avx512(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
+    use std::arch::x86_64::*;
+    const CHUNK: usize = 128;
+    const TILE: usize = ROWS * MAX_PX;
+    let tiles = l.positions().div_ceil(MAX_PX);
+    let mut sums = vec![0f32; tiles * TILE];
+    for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
+        for (tile, sums) in sums.chunks_exact_mut(TILE).enumerate() {
+            // SAFETY (pointer reads and writes): `channel_block` asserted every tap's tile in
+            // `padded`; `weights` holds `ROWS` values per tap; `sums` holds a whole tile.
+            unsafe {
+                let s = sums.as_mut_ptr();
+                let mut a = [_mm512_setzero_ps(); 2 * ROWS];
+                if c > 0 {
+                    for (q, a) in a.iter_mut().enumerate() {
+                        *a = _mm512_loadu_ps(s.add(16 * q));
+                    }
+                }
+                let base = padded.as_ptr().add(tile * MAX_PX);
+                let mut w = weights.as_ptr().add(c * CHUNK * ROWS);
+                for &t in taps {
+                    let x0 = _mm512_loadu_ps(base.add(t));
+                    let x1 = _mm512_loadu_ps(base.add(t + 16));
+                    for r in 0..ROWS {
+                        let b = _mm512_set1_ps(*w.add(r));
+                        a[2 * r] = _mm512_fmadd_ps(b, x0, a[2 * r]);
+                        a[2 * r + 1] = _mm512_fmadd_ps(b, x1, a[2 * r + 1]);
+                    }
+                    w = w.add(ROWS);
+                }
+                for (q, a) in a.iter().enumerate() {
+                    _mm512_storeu_ps(s.add(16 * q), *a);
+                }
+            }
+        }
+    }
+    for (tile, sums) in sums.chunks_exact(TILE).enumerate() {
+        let mut acc = [[0f32; MAX_PX]; ROWS];
+        for (a, s) in acc.iter_mut().zip(sums.chunks_exact(MAX_PX)) {
+            a.copy_from_slice(s);
+        }
+        scatter(l, &acc, bias, tile * MAX_PX, out);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The portable tiles (what the Orin runs) give the sums the dispatched kernel gives.
+    #[test]
+    fn portable_tiles_equal_the_dispatched_kernel() {
+        let (ci, h, w, k) = (20, 9, 37, 3);
+        let l = Layout {
+            taps: (0..ci).flat_map(|c| (0..k).flat_map(move |i| (0..k).map(move |j| (c * h + i) * w + j))).collect(),
+            wp: w,
+            oh: h - k + 1,
+            ow: w - k + 1,
+        };
+        let padded: Vec<f32> = (0..ci * h * w + MAX_PX).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
+        let weights: Vec<f32> = (0..l.taps.len() * ROWS).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+        let bias = [0.5; ROWS];
+        let mut a = vec![0f32; 5 * l.oh * l.ow]; // a partial block: 5 of the 8 rows
+        let mut b = a.clone();
+        channel_block(&l, &padded, &weights, &bias, &mut a);
+        positions::<false>(&l, &padded, &weights, &bias, &mut b);
+        let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        assert!(worst < 1e-3, "off by {worst}");
+        assert!(a.iter().all(|v| *v != 0.0));
+    }
+}

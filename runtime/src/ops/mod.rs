@@ -1,0 +1,61 @@
+//! Operators of our own that tract runs in place of its generic ones where they are faster
+//! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
+//! ([`DepthwiseXCorr`]) and stride-1 convolutions ([`PackedConv`]). Plans on disk keep tract's
+//! standard operators, so the choice is made on the machine that runs the plan.
+
+mod conv;
+mod conv_kernel;
+mod xcorr;
+mod xcorr_kernel;
+
+pub use conv::{ConvShape, PackedConv};
+pub use xcorr::DepthwiseXCorr;
+
+use tract_nnef::internal::*;
+
+/// How many nodes [`accelerate`] replaced.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Accelerated {
+    /// Depthwise correlations made [`DepthwiseXCorr`].
+    pub correlations: usize,
+    /// Convolutions made [`PackedConv`].
+    pub convolutions: usize,
+}
+
+/// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
+/// before tract optimises the model.
+pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
+    let mut done = Accelerated::default();
+    for id in model.eval_order()? {
+        let node = model.node(id);
+        // A packed convolution holds its weights and bias: it reads only the data input.
+        let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = conv::packed(model, node)? {
+            done.convolutions += 1;
+            (Box::new(op), tvec![node.inputs[0]])
+        } else if xcorr::matches(model, node)? {
+            done.correlations += 1;
+            (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())
+        } else {
+            continue;
+        };
+        let patch = TypedModelPatch::replace_single_op(model, node, &inputs, op)?;
+        patch.apply(model)?;
+    }
+    if done != Accelerated::default() {
+        model.compact()?;
+    }
+    Ok(done)
+}
+
+/// Run `f(i, chunk)` on every `len`-long chunk of `out` (the last may be shorter), on tract's
+/// thread pool when it has one.
+fn par_chunks(out: &mut [f32], len: usize, f: impl Fn(usize, &mut [f32]) + Sync) {
+    use rayon::prelude::*;
+    use tract_linalg::multithread::{current_tract_executor, Executor};
+    let chunks = out.par_chunks_mut(len).enumerate();
+    match current_tract_executor() {
+        Executor::SingleThread => out.chunks_mut(len).enumerate().for_each(|(i, c)| f(i, c)),
+        Executor::MultiThread(pool) => pool.install(|| chunks.for_each(|(i, c)| f(i, c))),
+        Executor::RayonGlobal => chunks.for_each(|(i, c)| f(i, c)),
+    }
+}

@@ -1,0 +1,161 @@
+//! The inner loop of the depthwise cross-correlation: one channel at a time, output rows
+//! accumulated in registers as 16-wide strips of columns, one fused multiply-add per kernel tap
+//! and column. Every output value is the sum over the kernel rows, then columns, in that order.
+
+/// Columns per accumulator block (one AVX-512 register, two AVX ones, four NEON ones).
+const LANES: usize = 16;
+/// Accumulator blocks per strip: 3 blocks cover the 41 columns of `s1`.
+const MAX_BLOCKS: usize = 4;
+
+/// One channel's geometry.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Geometry {
+    /// Input rows and columns.
+    pub h: usize,
+    pub w: usize,
+    /// Kernel rows and columns.
+    pub kh: usize,
+    pub kw: usize,
+}
+
+impl Geometry {
+    pub fn out_h(&self) -> usize {
+        self.h - self.kh + 1
+    }
+
+    pub fn out_w(&self) -> usize {
+        self.w - self.kw + 1
+    }
+
+    /// Row stride of the padded copy of the input: room for a whole last block past any column.
+    fn padded_w(&self) -> usize {
+        self.out_w().div_ceil(LANES) * LANES + self.kw - 1
+    }
+
+    /// Floats of scratch [`correlate_channel`] needs.
+    pub fn scratch_len(&self) -> usize {
+        self.h * self.padded_w()
+    }
+}
+
+/// `out[y,x] = bias + Σ_{i,j} input[y+i, x+j]·kernel[i,j]` for one channel (`input` [h,w],
+/// `kernel` [kh,kw], `out` [h−kh+1, w−kw+1], all row-major). `scratch` holds the input with its
+/// rows padded to whole blocks.
+pub(crate) fn correlate_channel(
+    g: Geometry,
+    input: &[f32],
+    kernel: &[f32],
+    bias: f32,
+    out: &mut [f32],
+    scratch: &mut [f32],
+) {
+    let wp = g.padded_w();
+    let scratch = &mut scratch[..g.h * wp];
+    for (dst, src) in scratch.chunks_exact_mut(wp).zip(input.chunks_exact(g.w)) {
+        dst[..g.w].copy_from_slice(src);
+        dst[g.w..].fill(0.0);
+    }
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has the features the function is compiled for (checked just above).
+        unsafe { strips_avx2_fma(g, scratch, kernel, bias, out) };
+        return;
+    }
+    strips::<{ cfg!(target_arch = "aarch64") }>(g, scratch, kernel, bias, out);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn strips_avx2_fma(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
+    strips::<true>(g, padded, kernel, bias, out)
+}
+
+/// Every strip of up to `MAX_BLOCKS` blocks of output columns. `FUSED`: use fused multiply-add
+/// (only where the target has it in hardware; elsewhere `mul_add` is a slow library call).
+#[inline(always)]
+fn strips<const FUSED: bool>(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
+    let ow = g.out_w();
+    let mut x0 = 0;
+    while x0 < ow {
+        let cols = (ow - x0).min(MAX_BLOCKS * LANES);
+        match cols.div_ceil(LANES) {
+            1 => strip::<1, FUSED>(g, padded, kernel, bias, out, x0, cols),
+            2 => strip::<2, FUSED>(g, padded, kernel, bias, out, x0, cols),
+            3 => strip::<3, FUSED>(g, padded, kernel, bias, out, x0, cols),
+            _ => strip::<4, FUSED>(g, padded, kernel, bias, out, x0, cols),
+        }
+        x0 += cols;
+    }
+}
+
+/// Output columns `x0..x0+cols` (at most `B` blocks) of every output row.
+#[inline(always)]
+fn strip<const B: usize, const FUSED: bool>(
+    g: Geometry,
+    padded: &[f32],
+    kernel: &[f32],
+    bias: f32,
+    out: &mut [f32],
+    x0: usize,
+    cols: usize,
+) {
+    let (wp, ow) = (g.padded_w(), g.out_w());
+    for y in 0..g.out_h() {
+        let mut acc = [[bias; LANES]; B];
+        for i in 0..g.kh {
+            let row = &padded[(y + i) * wp + x0..(y + i + 1) * wp];
+            for (j, &k) in kernel[i * g.kw..(i + 1) * g.kw].iter().enumerate() {
+                let taps = &row[j..j + B * LANES];
+                for (b, block) in acc.iter_mut().enumerate() {
+                    for (l, a) in block.iter_mut().enumerate() {
+                        let v = taps[b * LANES + l];
+                        *a = if FUSED { k.mul_add(v, *a) } else { k * v + *a };
+                    }
+                }
+            }
+        }
+        let dst = &mut out[y * ow + x0..y * ow + x0 + cols];
+        for (d, a) in dst.iter_mut().zip(acc.iter().flatten()) {
+            *d = *a;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn direct(g: Geometry, input: &[f32], kernel: &[f32], bias: f32) -> Vec<f32> {
+        let mut out = Vec::new();
+        for y in 0..g.out_h() {
+            for x in 0..g.out_w() {
+                let mut s = bias as f64;
+                for i in 0..g.kh {
+                    for j in 0..g.kw {
+                        s += input[(y + i) * g.w + x + j] as f64 * kernel[i * g.kw + j] as f64;
+                    }
+                }
+                out.push(s as f32);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn equals_the_direct_sum_for_every_strip_width() {
+        // Output widths of 1, 16, 17, 41 (three blocks), 64 and 70 (two strips) columns.
+        for (h, w, kh, kw) in
+            [(5, 5, 5, 5), (20, 20, 5, 5), (9, 19, 3, 3), (69, 69, 29, 29), (8, 66, 3, 3), (7, 75, 4, 6)]
+        {
+            let g = Geometry { h, w, kh, kw };
+            let input: Vec<f32> = (0..h * w).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
+            let kernel: Vec<f32> = (0..kh * kw).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+            let mut out = vec![f32::NAN; g.out_h() * g.out_w()];
+            let mut scratch = vec![f32::NAN; g.scratch_len()];
+            correlate_channel(g, &input, &kernel, 0.25, &mut out, &mut scratch);
+            let want = direct(g, &input, &kernel, 0.25);
+            let worst = out.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-4 * (kh * kw) as f32, "{h}x{w} by {kh}x{kw}: off by {worst}");
+        }
+    }
+}
