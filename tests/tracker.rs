@@ -118,6 +118,7 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
     for layer in ["layer1", "layer2", "layer3", "layer4"] {
         assert!(convs.iter().any(|n| n.contains(layer)), "{layer} in {convs:?}");
     }
+    assert_eq!(named("ChannelMaxPool").len(), 2, "the backbone's max pools");
     let zf = plan.template(&golden["z"].data).unwrap();
     let out = plan.search(&golden["x"].data, &zf).unwrap();
     for (name, ours) in [("loc", &out.loc), ("cls1", &out.cls1), ("cls2", &out.cls2)] {

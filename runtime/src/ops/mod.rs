@@ -1,14 +1,17 @@
 //! Operators of our own that tract runs in place of its generic ones where they are faster
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
-//! ([`DepthwiseXCorr`]) and stride-1 convolutions ([`PackedConv`]). Plans on disk keep tract's
+//! ([`DepthwiseXCorr`]), stride-1 convolutions ([`PackedConv`]) and max pooling
+//! ([`ChannelMaxPool`]). Plans on disk keep tract's
 //! standard operators, so the choice is made on the machine that runs the plan.
 
 mod conv;
 mod conv_kernel;
+mod pool;
 mod xcorr;
 mod xcorr_kernel;
 
 pub use conv::{ConvShape, PackedConv};
+pub use pool::ChannelMaxPool;
 pub use xcorr::DepthwiseXCorr;
 
 use tract_nnef::internal::*;
@@ -20,6 +23,8 @@ pub struct Accelerated {
     pub correlations: usize,
     /// Convolutions made [`PackedConv`].
     pub convolutions: usize,
+    /// Max pools made [`ChannelMaxPool`].
+    pub pools: usize,
 }
 
 /// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
@@ -31,6 +36,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         // A packed convolution holds its weights and bias: it reads only the data input.
         let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = conv::packed(model, node)? {
             done.convolutions += 1;
+            (Box::new(op), tvec![node.inputs[0]])
+        } else if let Some(op) = pool::channel_max_pool(model, node)? {
+            done.pools += 1;
             (Box::new(op), tvec![node.inputs[0]])
         } else if xcorr::matches(model, node)? {
             done.correlations += 1;

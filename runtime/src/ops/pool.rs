@@ -1,0 +1,125 @@
+//! Unpadded float max pooling as [`ChannelMaxPool`]: channels spread over the thread pool
+//! (tract's max pool runs on one thread: 9 ms of the search network on 2 threads).
+
+use tract_nnef::internal::*;
+use tract_nnef::tract_core::ops::cnn::{MaxPool, PaddingSpec};
+use tract_nnef::tract_core::ops::nn::DataFormat;
+
+use super::par_chunks;
+
+/// `out[n,c,y,x] = max_{i<k, j<k} input[n,c,y·s+i,x·s+j]`: a `k` x `k` window, stride `s`, no
+/// padding, NCHW f32.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChannelMaxPool {
+    /// Window side.
+    pub k: usize,
+    /// Stride on both axes.
+    pub stride: usize,
+}
+
+impl ChannelMaxPool {
+    fn out(&self, side: usize) -> usize {
+        (side - self.k) / self.stride + 1
+    }
+}
+
+impl Op for ChannelMaxPool {
+    fn name(&self) -> StaticName {
+        "ChannelMaxPool".into()
+    }
+
+    op_as_typed_op!();
+}
+
+impl EvalOp for ChannelMaxPool {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let input = args_1!(inputs);
+        let &[n, c, h, w] = input.shape() else { bail!("ChannelMaxPool: input {:?} is not rank 4", input.shape()) };
+        ensure!(h >= self.k && w >= self.k, "ChannelMaxPool: input {:?} smaller than the window", input.shape());
+        let (oh, ow) = (self.out(h), self.out(w));
+        let input = input.try_as_plain_ram()?;
+        let input = input.as_slice::<f32>()?;
+        let mut out = vec![0f32; n * c * oh * ow];
+        par_chunks(&mut out, oh * ow, |plane, dst| {
+            let src = &input[plane * h * w..(plane + 1) * h * w];
+            for (y, row) in dst.chunks_exact_mut(ow).enumerate() {
+                let rows = &src[y * self.stride * w..(y * self.stride + self.k) * w];
+                for (x, d) in row.iter_mut().enumerate() {
+                    let x0 = x * self.stride;
+                    let window = rows.chunks_exact(w).flat_map(|r| &r[x0..x0 + self.k]);
+                    *d = window.fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+                }
+            }
+        });
+        let out = tract_ndarray::Array4::from_shape_vec((n, c, oh, ow), out)?;
+        Ok(tvec!(out.into_tensor().into_tvalue()))
+    }
+}
+
+impl TypedOp for ChannelMaxPool {
+    fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        let s = &inputs[0].shape;
+        let out = |d: usize| (s[d].clone() - self.k) / self.stride + 1;
+        Ok(tvec!(f32::fact([s[0].clone(), s[1].clone(), out(2), out(3)])))
+    }
+
+    as_op!();
+}
+
+/// The [`ChannelMaxPool`] for `node` of `model` if it is an f32 NCHW max pool with a square
+/// window, equal strides, no padding, no dilation and no index output.
+pub(crate) fn channel_max_pool(model: &TypedModel, node: &TypedNode) -> TractResult<Option<ChannelMaxPool>> {
+    let Some(pool) = node.op_as::<MaxPool>() else { return Ok(None) };
+    let fact = model.outlet_fact(node.inputs[0])?;
+    let ps = &pool.pool_spec;
+    let k = ps.kernel_shape.as_slice();
+    let strides = ps.strides.as_ref().map(|s| s.to_vec()).unwrap_or_else(|| vec![1; k.len()]);
+    let unpadded = match &ps.padding {
+        PaddingSpec::Valid => true,
+        PaddingSpec::Explicit(b, a) | PaddingSpec::ExplicitOnnxPool(b, a, _) => b.iter().chain(a).all(|&p| p == 0),
+        _ => false,
+    };
+    let plain = pool.with_index_outputs.is_none()
+        && ps.data_format == DataFormat::NCHW
+        && fact.datum_type == f32::datum_type()
+        && fact.rank() == 4
+        && k.len() == 2
+        && k[0] == k[1]
+        && strides.len() == 2
+        && strides[0] == strides[1]
+        && ps.dilations.as_ref().is_none_or(|d| d.iter().all(|&d| d == 1))
+        && unpadded;
+    Ok(plain.then_some(ChannelMaxPool { k: k[0], stride: strides[0] }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn takes_the_maximum_of_each_window() {
+        let op = ChannelMaxPool { k: 3, stride: 2 };
+        // 2 channels of 7x5: output 3x2; channel 1 holds the negated values.
+        let v: Vec<f32> = (0..35).map(|i| ((i * 17) % 23) as f32).collect();
+        let data: Vec<f32> = v.iter().copied().chain(v.iter().map(|x| -x)).collect();
+        let v = &v;
+        let x = tract_ndarray::Array4::from_shape_vec((1, 2, 7, 5), data).unwrap();
+        let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();
+        let out = out[0].try_as_plain_ram().unwrap();
+        let out = out.as_slice::<f32>().unwrap();
+        assert_eq!(out.len(), 2 * 3 * 2);
+        for c in 0..2 {
+            let sign = if c == 0 { 1.0 } else { -1.0 };
+            for y in 0..3 {
+                for x in 0..2 {
+                    let want = (0..3)
+                        .flat_map(|i| (0..3).map(move |j| sign * v[(2 * y + i) * 5 + 2 * x + j]))
+                        .fold(f32::NEG_INFINITY, f32::max);
+                    assert_eq!(out[(c * 3 + y) * 2 + x], want, "channel {c} ({y},{x})");
+                }
+            }
+        }
+    }
+}
