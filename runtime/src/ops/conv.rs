@@ -13,7 +13,7 @@ use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat, PaddingSpec};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
-use super::par_chunks;
+use super::{all_ones, par_chunks};
 
 /// Shape of one convolution: input `[N, ci, h, w]`, padding, kernel `kh` x `kw`, `co` outputs.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
@@ -168,7 +168,6 @@ pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option
     let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
     let facts = model.node_input_facts(node.id)?;
     let ps = &conv.pool_spec;
-    let ones = |v: &Option<TVec<usize>>| v.as_ref().is_none_or(|v| v.iter().all(|&s| s == 1));
     let pad = match &ps.padding {
         PaddingSpec::Valid => [0; 4],
         PaddingSpec::Explicit(b, a) | PaddingSpec::ExplicitOnnxPool(b, a, _) if b.len() == 2 && a.len() == 2 => {
@@ -182,8 +181,8 @@ pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option
         && ps.kernel_shape.len() == 2
         && ps.kernel_shape.iter().product::<usize>() > 1
         && conv.group == 1
-        && ones(&ps.strides)
-        && ones(&ps.dilations)
+        && all_ones(&ps.strides)
+        && all_ones(&ps.dilations)
         && facts.len() == 3
         && facts.iter().all(|f| f.datum_type == f32::datum_type());
     if !plain {

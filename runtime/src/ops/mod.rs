@@ -55,6 +55,21 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
     Ok(done)
 }
 
+/// Whether a pooling spec's strides or dilations (absent: 1) are all 1.
+fn all_ones(v: &Option<TVec<usize>>) -> bool {
+    v.as_ref().is_none_or(|v| v.iter().all(|&s| s == 1))
+}
+
+/// Whether a padding spec adds no padding.
+fn no_padding(p: &tract_nnef::tract_core::ops::cnn::PaddingSpec) -> bool {
+    use tract_nnef::tract_core::ops::cnn::PaddingSpec::*;
+    match p {
+        Valid => true,
+        Explicit(b, a) | ExplicitOnnxPool(b, a, _) => b.iter().chain(a).all(|&p| p == 0),
+        _ => false,
+    }
+}
+
 /// Run `f(i, chunk)` on every `len`-long chunk of `out` (the last may be shorter), on tract's
 /// thread pool when it has one.
 fn par_chunks(out: &mut [f32], len: usize, f: impl Fn(usize, &mut [f32]) + Sync) {

@@ -2,10 +2,10 @@
 //! (tract's max pool runs on one thread: 9 ms of the search network on 2 threads).
 
 use tract_nnef::internal::*;
-use tract_nnef::tract_core::ops::cnn::{MaxPool, PaddingSpec};
+use tract_nnef::tract_core::ops::cnn::MaxPool;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::par_chunks;
+use super::{all_ones, no_padding, par_chunks};
 
 /// `out[n,c,y,x] = max_{i<k, j<k} input[n,c,y·s+i,x·s+j]`: a `k` x `k` window, stride `s`, no
 /// padding, NCHW f32.
@@ -76,11 +76,6 @@ pub(crate) fn channel_max_pool(model: &TypedModel, node: &TypedNode) -> TractRes
     let ps = &pool.pool_spec;
     let k = ps.kernel_shape.as_slice();
     let strides = ps.strides.as_ref().map(|s| s.to_vec()).unwrap_or_else(|| vec![1; k.len()]);
-    let unpadded = match &ps.padding {
-        PaddingSpec::Valid => true,
-        PaddingSpec::Explicit(b, a) | PaddingSpec::ExplicitOnnxPool(b, a, _) => b.iter().chain(a).all(|&p| p == 0),
-        _ => false,
-    };
     let plain = pool.with_index_outputs.is_none()
         && ps.data_format == DataFormat::NCHW
         && fact.datum_type == f32::datum_type()
@@ -89,8 +84,8 @@ pub(crate) fn channel_max_pool(model: &TypedModel, node: &TypedNode) -> TractRes
         && k[0] == k[1]
         && strides.len() == 2
         && strides[0] == strides[1]
-        && ps.dilations.as_ref().is_none_or(|d| d.iter().all(|&d| d == 1))
-        && unpadded;
+        && all_ones(&ps.dilations)
+        && no_padding(&ps.padding);
     Ok(plain.then_some(ChannelMaxPool { k: k[0], stride: strides[0] }))
 }
 

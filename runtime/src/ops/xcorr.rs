@@ -9,11 +9,11 @@
 //! ([`super::xcorr_kernel`]) and spreads channels over tract's thread pool.
 
 use tract_nnef::internal::*;
-use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat, PaddingSpec};
+use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::par_chunks;
 use super::xcorr_kernel::{correlate_channel, Geometry};
+use super::{all_ones, no_padding, par_chunks};
 
 /// `out[n,c,y,x] = bias[c] + Σ_{i,j} input[n,c,y+i,x+j]·kernel[c,0,i,j]`: inputs `input`
 /// [N,C,H,W], `kernel` [C,1,kh,kw] and `bias` (a scalar or [C]), all f32; no padding, stride 1.
@@ -85,21 +85,15 @@ pub(crate) fn matches(model: &TypedModel, node: &TypedNode) -> TractResult<bool>
     let Some(conv) = node.op_as::<Conv>() else { return Ok(false) };
     let facts = model.node_input_facts(node.id)?;
     let ps = &conv.pool_spec;
-    let ones = |v: &Option<TVec<usize>>| v.as_ref().is_none_or(|v| v.iter().all(|&s| s == 1));
-    let unpadded = match &ps.padding {
-        PaddingSpec::Valid => true,
-        PaddingSpec::Explicit(b, a) | PaddingSpec::ExplicitOnnxPool(b, a, _) => b.iter().chain(a).all(|&p| p == 0),
-        _ => false,
-    };
     Ok(conv.q_params.is_none()
         && conv.kernel_fmt == KernelFormat::OIHW
         && ps.data_format == DataFormat::NCHW
         && ps.kernel_shape.len() == 2
         && conv.group == ps.input_channels
         && ps.input_channels == ps.output_channels
-        && ones(&ps.strides)
-        && ones(&ps.dilations)
-        && unpadded
+        && all_ones(&ps.strides)
+        && all_ones(&ps.dilations)
+        && no_padding(&ps.padding)
         && facts.len() == 3
         && facts[1].konst.is_none()
         && facts.iter().all(|f| f.datum_type == f32::datum_type())
