@@ -66,10 +66,12 @@ fn held_out_errors(a: &Path, b: &Path) -> [f64; 3] {
     err
 }
 
+/// Nodes that multiply on integers: tract's i32 matmul kernels, or the runtime's u8 x i8
+/// convolution (on CPUs with AVX-512 VNNI).
 fn int8_kernel_nodes(plan: &Plan) -> Vec<String> {
     plan.search_nodes()
         .into_iter()
-        .filter(|n| n.op == "OptMatMul" && n.info.contains("mmm_i32"))
+        .filter(|n| (n.op == "OptMatMul" && n.info.contains("mmm_i32")) || n.op == "PackedQConv")
         .map(|n| n.name)
         .collect()
 }

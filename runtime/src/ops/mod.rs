@@ -1,17 +1,19 @@
 //! Operators of our own that tract runs in place of its generic ones where they are faster
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
-//! ([`DepthwiseXCorr`]), stride-1 convolutions ([`PackedConv`]) and max pooling
-//! ([`ChannelMaxPool`]). Plans on disk keep tract's
+//! ([`DepthwiseXCorr`]), stride-1 convolutions ([`PackedConv`], and [`PackedQConv`] for int8
+//! plans on CPUs with AVX-512 VNNI) and max pooling ([`ChannelMaxPool`]). Plans on disk keep tract's
 //! standard operators, so the choice is made on the machine that runs the plan.
 
 mod conv;
 mod conv_kernel;
 mod pool;
+mod qconv;
 mod xcorr;
 mod xcorr_kernel;
 
 pub use conv::{ConvShape, PackedConv};
 pub use pool::ChannelMaxPool;
+pub use qconv::PackedQConv;
 pub use xcorr::DepthwiseXCorr;
 
 use tract_nnef::internal::*;
@@ -25,6 +27,8 @@ pub struct Accelerated {
     pub convolutions: usize,
     /// Max pools made [`ChannelMaxPool`].
     pub pools: usize,
+    /// Quantised (u8 x i8) convolutions made [`PackedQConv`].
+    pub int8_convolutions: usize,
 }
 
 /// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
@@ -36,6 +40,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         // A packed convolution holds its weights and bias: it reads only the data input.
         let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = conv::packed(model, node)? {
             done.convolutions += 1;
+            (Box::new(op), tvec![node.inputs[0]])
+        } else if let Some(op) = qconv::packed_q(model, node)? {
+            done.int8_convolutions += 1;
             (Box::new(op), tvec![node.inputs[0]])
         } else if let Some(op) = pool::channel_max_pool(model, node)? {
             done.pools += 1;
@@ -72,7 +79,7 @@ fn no_padding(p: &tract_nnef::tract_core::ops::cnn::PaddingSpec) -> bool {
 
 /// Run `f(i, chunk)` on every `len`-long chunk of `out` (the last may be shorter), on tract's
 /// thread pool when it has one.
-fn par_chunks(out: &mut [f32], len: usize, f: impl Fn(usize, &mut [f32]) + Sync) {
+fn par_chunks<T: Send>(out: &mut [T], len: usize, f: impl Fn(usize, &mut [T]) + Sync) {
     use rayon::prelude::*;
     use tract_linalg::multithread::{current_tract_executor, Executor};
     let chunks = out.par_chunks_mut(len).enumerate();
