@@ -1,5 +1,6 @@
-//! Unpadded float max pooling as [`ChannelMaxPool`]: channels spread over the thread pool
-//! (tract's max pool runs on one thread: 9 ms of the search network on 2 threads).
+//! Unpadded max pooling of f32 or u8 (int8 plans) as [`ChannelMaxPool`]: channels spread over
+//! the thread pool (tract's max pool runs on one thread: 9 ms of the search network on 2
+//! threads).
 
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::MaxPool;
@@ -8,7 +9,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 use super::{all_ones, no_padding, par_chunks};
 
 /// `out[n,c,y,x] = max_{i<k, j<k} input[n,c,y·s+i,x·s+j]`: a `k` x `k` window, stride `s`, no
-/// padding, NCHW f32.
+/// padding, NCHW, f32 or u8 (quantised u8 too: a positive scale keeps the order).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ChannelMaxPool {
     /// Window side.
@@ -38,10 +39,32 @@ impl EvalOp for ChannelMaxPool {
         let input = args_1!(inputs);
         let &[n, c, h, w] = input.shape() else { bail!("ChannelMaxPool: input {:?} is not rank 4", input.shape()) };
         ensure!(h >= self.k && w >= self.k, "ChannelMaxPool: input {:?} smaller than the window", input.shape());
+        let dt = input.datum_type();
+        let plain = input.try_as_plain_ram()?;
+        let mut out = if dt == f32::datum_type() {
+            self.pool(plain.as_slice::<f32>()?, [n, c, h, w], f32::NEG_INFINITY, f32::max)?.into_tensor()
+        } else {
+            ensure!(dt.unquantized() == u8::datum_type(), "ChannelMaxPool: input is {dt:?}");
+            // SAFETY: the storage is u8 (plain or quantised), checked above.
+            let data = unsafe { plain.as_slice_unchecked::<u8>() };
+            self.pool(data, [n, c, h, w], 0u8, u8::max)?.into_tensor()
+        };
+        // SAFETY: same storage type; the input's quantisation parameters carry over.
+        unsafe { out.set_datum_type(dt) };
+        Ok(tvec!(out.into_tvalue()))
+    }
+}
+
+impl ChannelMaxPool {
+    fn pool<T: Copy + Send + Sync + Default>(
+        &self,
+        input: &[T],
+        [n, c, h, w]: [usize; 4],
+        lowest: T,
+        max: fn(T, T) -> T,
+    ) -> TractResult<tract_ndarray::Array4<T>> {
         let (oh, ow) = (self.out(h), self.out(w));
-        let input = input.try_as_plain_ram()?;
-        let input = input.as_slice::<f32>()?;
-        let mut out = vec![0f32; n * c * oh * ow];
+        let mut out = vec![T::default(); n * c * oh * ow];
         par_chunks(&mut out, oh * ow, |plane, dst| {
             let src = &input[plane * h * w..(plane + 1) * h * w];
             for (y, row) in dst.chunks_exact_mut(ow).enumerate() {
@@ -49,12 +72,11 @@ impl EvalOp for ChannelMaxPool {
                 for (x, d) in row.iter_mut().enumerate() {
                     let x0 = x * self.stride;
                     let window = rows.chunks_exact(w).flat_map(|r| &r[x0..x0 + self.k]);
-                    *d = window.fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+                    *d = window.fold(lowest, |m, &v| max(m, v));
                 }
             }
         });
-        let out = tract_ndarray::Array4::from_shape_vec((n, c, oh, ow), out)?;
-        Ok(tvec!(out.into_tensor().into_tvalue()))
+        Ok(tract_ndarray::Array4::from_shape_vec((n, c, oh, ow), out)?)
     }
 }
 
@@ -62,14 +84,14 @@ impl TypedOp for ChannelMaxPool {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
         let s = &inputs[0].shape;
         let out = |d: usize| (s[d].clone() - self.k) / self.stride + 1;
-        Ok(tvec!(f32::fact([s[0].clone(), s[1].clone(), out(2), out(3)])))
+        Ok(tvec!(inputs[0].datum_type.fact([s[0].clone(), s[1].clone(), out(2), out(3)])))
     }
 
     as_op!();
 }
 
-/// The [`ChannelMaxPool`] for `node` of `model` if it is an f32 NCHW max pool with a square
-/// window, equal strides, no padding, no dilation and no index output.
+/// The [`ChannelMaxPool`] for `node` of `model` if it is an f32 or u8 NCHW max pool with a
+/// square window, equal strides, no padding, no dilation and no index output.
 pub(crate) fn channel_max_pool(model: &TypedModel, node: &TypedNode) -> TractResult<Option<ChannelMaxPool>> {
     let Some(pool) = node.op_as::<MaxPool>() else { return Ok(None) };
     let fact = model.outlet_fact(node.inputs[0])?;
@@ -78,7 +100,7 @@ pub(crate) fn channel_max_pool(model: &TypedModel, node: &TypedNode) -> TractRes
     let strides = ps.strides.as_ref().map(|s| s.to_vec()).unwrap_or_else(|| vec![1; k.len()]);
     let plain = pool.with_index_outputs.is_none()
         && ps.data_format == DataFormat::NCHW
-        && fact.datum_type == f32::datum_type()
+        && (fact.datum_type == f32::datum_type() || fact.datum_type.unquantized() == u8::datum_type())
         && fact.rank() == 4
         && k.len() == 2
         && k[0] == k[1]
@@ -92,6 +114,18 @@ pub(crate) fn channel_max_pool(model: &TypedModel, node: &TypedNode) -> TractRes
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pools_u8_like_f32() {
+        let op = ChannelMaxPool { k: 3, stride: 2 };
+        let v: Vec<u8> = (0..2 * 35).map(|i| ((i * 37) % 251) as u8).collect();
+        let as_f32: Vec<f32> = v.iter().map(|&b| b as f32).collect();
+        let run = |t: Tensor| op.eval(&EvalContext::out_of_plan(), tvec![t.into_tvalue()]).unwrap().remove(0);
+        let a = run(tract_ndarray::Array4::from_shape_vec((1, 2, 7, 5), v).unwrap().into_tensor());
+        let b = run(tract_ndarray::Array4::from_shape_vec((1, 2, 7, 5), as_f32).unwrap().into_tensor());
+        let a: Vec<f32> = a.try_as_plain_ram().unwrap().as_slice::<u8>().unwrap().iter().map(|&x| x as f32).collect();
+        assert_eq!(a, b.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap());
+    }
 
     #[test]
     fn takes_the_maximum_of_each_window() {
