@@ -61,18 +61,24 @@ impl ChannelMaxPool {
         input: &[T],
         [n, c, h, w]: [usize; 4],
         lowest: T,
-        max: fn(T, T) -> T,
+        max: impl Fn(T, T) -> T + Copy + Sync,
     ) -> TractResult<tract_ndarray::Array4<T>> {
         let (oh, ow) = (self.out(h), self.out(w));
         let mut out = vec![T::default(); n * c * oh * ow];
         par_chunks(&mut out, oh * ow, |plane, dst| {
             let src = &input[plane * h * w..(plane + 1) * h * w];
+            // The window's rows reduced first (element-wise, vectorised), then its columns.
+            let mut cols = vec![lowest; w];
             for (y, row) in dst.chunks_exact_mut(ow).enumerate() {
-                let rows = &src[y * self.stride * w..(y * self.stride + self.k) * w];
+                cols.fill(lowest);
+                for r in src[y * self.stride * w..(y * self.stride + self.k) * w].chunks_exact(w) {
+                    for (m, &v) in cols.iter_mut().zip(r) {
+                        *m = max(*m, v);
+                    }
+                }
                 for (x, d) in row.iter_mut().enumerate() {
                     let x0 = x * self.stride;
-                    let window = rows.chunks_exact(w).flat_map(|r| &r[x0..x0 + self.k]);
-                    *d = window.fold(lowest, |m, &v| max(m, v));
+                    *d = cols[x0..x0 + self.k].iter().fold(lowest, |m, &v| max(m, v));
                 }
             }
         });
