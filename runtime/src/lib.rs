@@ -39,7 +39,10 @@ pub use manifest::{
     GraphInfo, PlanManifest, Preprocessing, TensorInfo, WeightsInfo, PLAN_FORMAT_VERSION, PLAN_MANIFEST,
 };
 pub use nnef::nnef;
-pub use ops::{accelerate, Accelerated, ChannelMaxPool, ConvShape, DepthwiseXCorr, PackedConv, PackedQConv};
+pub use ops::{
+    accelerate, Accelerated, AttnMix, AttnScores, ChannelMaxPool, ConvShape, DepthwiseXCorr, PackedConv, PackedQConv,
+    RowSoftmax,
+};
 pub use plan::{set_threads, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
 pub use resize::resize_linear_u8;

@@ -1,9 +1,11 @@
 //! Operators of our own that tract runs in place of its generic ones where they are faster
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
 //! ([`DepthwiseXCorr`]), stride-1 convolutions ([`PackedConv`], and [`PackedQConv`] for int8
-//! plans on CPUs with AVX-512 VNNI) and max pooling ([`ChannelMaxPool`]). Plans on disk keep tract's
+//! plans on CPUs with AVX-512 VNNI), max pooling ([`ChannelMaxPool`]) and HMG's attention
+//! ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]). Plans on disk keep tract's
 //! standard operators, so the choice is made on the machine that runs the plan.
 
+mod attention;
 mod conv;
 mod conv_kernel;
 mod pool;
@@ -11,6 +13,7 @@ mod qconv;
 mod xcorr;
 mod xcorr_kernel;
 
+pub use attention::{AttnMix, AttnScores, RowSoftmax};
 pub use conv::{ConvShape, PackedConv};
 pub use pool::ChannelMaxPool;
 pub use qconv::PackedQConv;
@@ -29,6 +32,8 @@ pub struct Accelerated {
     pub pools: usize,
     /// Quantised (u8 x i8) convolutions made [`PackedQConv`].
     pub int8_convolutions: usize,
+    /// Attention products and softmaxes made [`AttnScores`], [`AttnMix`], [`RowSoftmax`].
+    pub attention: usize,
 }
 
 /// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
@@ -47,6 +52,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         } else if let Some(op) = pool::channel_max_pool(model, node)? {
             done.pools += 1;
             (Box::new(op), tvec![node.inputs[0]])
+        } else if let Some(op) = attention::attention_op(model, node)? {
+            done.attention += 1;
+            (op, node.inputs.iter().copied().collect())
         } else if xcorr::matches(model, node)? {
             done.correlations += 1;
             (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())

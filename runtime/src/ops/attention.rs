@@ -1,0 +1,363 @@
+//! HMG's hierarchical cross-attention, per head: `scores = q·[k_a, k_b]ᵀ` and `mix =
+//! softmax(scores)·[v_a, v_b]` ([`AttnScores`], [`AttnMix`]), and the softmax over the last axis
+//! ([`RowSoftmax`]).
+//!
+//! The products are small (121 tokens, parts of 16, two key sets): tract runs each einsum as a
+//! packed matrix product at 1-5 GFLOP/s, and its softmax takes a slower path for rows of 242
+//! (not a multiple of 4). Here each head is a few vectorised loops, heads spread over the
+//! thread pool. Matched on the einsum expressions the builder's attention makes.
+
+use tract_nnef::internal::*;
+use tract_nnef::tract_core::ops::einsum::EinSum;
+use tract_nnef::tract_core::ops::nn::{Softmax, SoftmaxKind};
+
+use super::par_chunks;
+
+/// `scores[a,m,b,n] = Σ_k q[0,a,m,k]·keys[b,a,n,k]` (`camk,bank->ambn`).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct AttnScores;
+
+/// `out[m,a,n] = Σ_{b,k} p[a,m,b,k]·values[b,a,k,n]` (`ambk,bakn->man`).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct AttnMix;
+
+/// Softmax of f32 over the last axis, `exp` by a degree-6 polynomial (relative error ~1e-7).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct RowSoftmax;
+
+fn slice(v: &TValue) -> TractResult<&[f32]> {
+    v.try_as_plain_ram()?.as_slice::<f32>()
+}
+
+impl Op for AttnScores {
+    fn name(&self) -> StaticName {
+        "AttnScores".into()
+    }
+    op_as_typed_op!();
+}
+
+impl EvalOp for AttnScores {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let (q, keys) = args_2!(inputs);
+        let (&[1, heads, m, p], &[b, kh, n, kp]) = (q.shape(), keys.shape()) else {
+            bail!("AttnScores: q {:?}, keys {:?}", q.shape(), keys.shape())
+        };
+        ensure!(kh == heads && kp == p, "AttnScores: q {:?}, keys {:?}", q.shape(), keys.shape());
+        let (qs, ks) = (slice(&q)?, slice(&keys)?);
+        let row = b * n;
+        let mut out = vec![0f32; heads * m * row];
+        par_chunks(&mut out, m * row, |a, out| {
+            // This head's keys transposed: [k][(b, n)], so each query row is `p` axpys.
+            let mut kt = vec![0f32; p * row];
+            for bi in 0..b {
+                for j in 0..n {
+                    for k in 0..p {
+                        kt[k * row + bi * n + j] = ks[((bi * heads + a) * n + j) * p + k];
+                    }
+                }
+            }
+            for (mi, dst) in out.chunks_exact_mut(row).enumerate() {
+                let qrow = &qs[(a * m + mi) * p..(a * m + mi + 1) * p];
+                axpys(dst, qrow, &kt);
+            }
+        });
+        Ok(tvec!(tract_ndarray::Array4::from_shape_vec((heads, m, b, n), out)?.into_tensor().into_tvalue()))
+    }
+}
+
+impl Op for AttnMix {
+    fn name(&self) -> StaticName {
+        "AttnMix".into()
+    }
+    op_as_typed_op!();
+}
+
+impl EvalOp for AttnMix {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let (probs, values) = args_2!(inputs);
+        let (&[heads, m, b, k], &[vb, vh, vk, n]) = (probs.shape(), values.shape()) else {
+            bail!("AttnMix: probs {:?}, values {:?}", probs.shape(), values.shape())
+        };
+        ensure!((vb, vh, vk) == (b, heads, k), "AttnMix: probs {:?}, values {:?}", probs.shape(), values.shape());
+        let (ps, vs) = (slice(&probs)?, slice(&values)?);
+        // Per head [m][n], then laid out [m][a][n].
+        let mut per_head = vec![0f32; heads * m * n];
+        par_chunks(&mut per_head, m * n, |a, out| {
+            // This head's values as one [(b, k)][n] matrix.
+            let mut va = Vec::with_capacity(b * k * n);
+            for bi in 0..b {
+                va.extend_from_slice(&vs[(bi * heads + a) * k * n..(bi * heads + a + 1) * k * n]);
+            }
+            for (mi, dst) in out.chunks_exact_mut(n).enumerate() {
+                let prow = &ps[(a * m + mi) * b * k..(a * m + mi + 1) * b * k];
+                axpys(dst, prow, &va);
+            }
+        });
+        let mut out = vec![0f32; m * heads * n];
+        for a in 0..heads {
+            for mi in 0..m {
+                out[(mi * heads + a) * n..(mi * heads + a + 1) * n]
+                    .copy_from_slice(&per_head[(a * m + mi) * n..(a * m + mi + 1) * n]);
+            }
+        }
+        Ok(tvec!(tract_ndarray::Array3::from_shape_vec((m, heads, n), out)?.into_tensor().into_tvalue()))
+    }
+}
+
+/// `dst = Σ_i coef[i]·rows[i]` (`rows` is `coef.len()` rows of `dst.len()`), summed in order.
+fn axpys(dst: &mut [f32], coef: &[f32], rows: &[f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has the features the function is compiled for.
+        return unsafe { axpys_fma(dst, coef, rows) };
+    }
+    axpys_generic::<{ cfg!(target_arch = "aarch64") }>(dst, coef, rows)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn axpys_fma(dst: &mut [f32], coef: &[f32], rows: &[f32]) {
+    axpys_generic::<true>(dst, coef, rows)
+}
+
+#[inline(always)]
+fn axpys_generic<const FUSED: bool>(dst: &mut [f32], coef: &[f32], rows: &[f32]) {
+    // Rows of 16 (the attention's parts) summed in registers.
+    if let Ok(dst16) = <&mut [f32; 16]>::try_from(&mut *dst) {
+        let mut acc = [0f32; 16];
+        for (&c, row) in coef.iter().zip(rows.chunks_exact(16)) {
+            for (a, &r) in acc.iter_mut().zip(row) {
+                *a = if FUSED { c.mul_add(r, *a) } else { c * r + *a };
+            }
+        }
+        *dst16 = acc;
+        return;
+    }
+    dst.fill(0.0);
+    for (&c, row) in coef.iter().zip(rows.chunks_exact(dst.len())) {
+        for (d, &r) in dst.iter_mut().zip(row) {
+            *d = if FUSED { c.mul_add(r, *d) } else { c * r + *d };
+        }
+    }
+}
+
+impl Op for RowSoftmax {
+    fn name(&self) -> StaticName {
+        "RowSoftmax".into()
+    }
+    op_as_typed_op!();
+}
+
+impl EvalOp for RowSoftmax {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let input = args_1!(inputs);
+        let row = *input.shape().last().context("RowSoftmax: scalar input")?;
+        let mut out = input.into_tensor();
+        let mut plain = out.try_as_plain_ram_mut()?;
+        let data = plain.as_slice_mut::<f32>()?;
+        let rows_per_task = (data.len() / row).div_ceil(8).max(1);
+        par_chunks(data, rows_per_task * row, |_, chunk| {
+            for r in chunk.chunks_exact_mut(row) {
+                softmax_row(r);
+            }
+        });
+        drop(plain);
+        Ok(tvec!(out.into_tvalue()))
+    }
+}
+
+fn softmax_row(r: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has the features the function is compiled for.
+        return unsafe { softmax_row_fma(r) };
+    }
+    softmax_row_generic(r)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn softmax_row_fma(r: &mut [f32]) {
+    softmax_row_generic(r)
+}
+
+#[inline(always)]
+fn softmax_row_generic(r: &mut [f32]) {
+    // Eight lanes of max and sum, so that the loops vectorise.
+    const L: usize = 8;
+    let mut lanes = [f32::NEG_INFINITY; L];
+    let mut chunks = r.chunks_exact(L);
+    for c in &mut chunks {
+        for (m, &v) in lanes.iter_mut().zip(c) {
+            *m = m.max(v);
+        }
+    }
+    let max = chunks.remainder().iter().chain(&lanes).fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+    for v in r.iter_mut() {
+        *v = exp_nonpositive(*v - max);
+    }
+    let mut sums = [0f32; L];
+    let mut chunks = r.chunks_exact(L);
+    for c in &mut chunks {
+        for (s, &v) in sums.iter_mut().zip(c) {
+            *s += v;
+        }
+    }
+    let sum: f32 = sums.iter().chain(chunks.remainder()).sum();
+    let inv = 1.0 / sum;
+    r.iter_mut().for_each(|v| *v *= inv);
+}
+
+/// `e^x` for `x <= 0` (a softmax's shifted inputs): `2^n · p(r)` with `x = n·ln2 + r`,
+/// `|r| <= ln2/2`, `p` the degree-6 Taylor polynomial (relative error under 2e-7); 0 below
+/// -87 (where f32 underflows anyway).
+#[inline(always)]
+fn exp_nonpositive(x: f32) -> f32 {
+    let x = x.max(-87.0);
+    let n = (x * std::f32::consts::LOG2_E).round_ties_even();
+    let r = x - n * 0.693_359_4 + n * 2.121_944_4e-4; // ln2 in two parts (Cephes)
+    let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
+    p * f32::from_bits(((n as i32 + 127) as u32) << 23)
+}
+
+macro_rules! same_shape_typed_op {
+    ($op:ty, $facts:expr) => {
+        impl TypedOp for $op {
+            fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+                #[allow(clippy::redundant_closure_call)]
+                Ok(tvec!(($facts)(inputs)?))
+            }
+            as_op!();
+        }
+    };
+}
+
+same_shape_typed_op!(AttnScores, |i: &[&TypedFact]| -> TractResult<TypedFact> {
+    let (q, k) = (&i[0].shape, &i[1].shape);
+    Ok(f32::fact([q[1].clone(), q[2].clone(), k[0].clone(), k[2].clone()]))
+});
+same_shape_typed_op!(AttnMix, |i: &[&TypedFact]| -> TractResult<TypedFact> {
+    let (p, v) = (&i[0].shape, &i[1].shape);
+    Ok(f32::fact([p[1].clone(), p[0].clone(), v[3].clone()]))
+});
+same_shape_typed_op!(RowSoftmax, |i: &[&TypedFact]| -> TractResult<TypedFact> { Ok(i[0].without_value()) });
+
+/// Which attention operator replaces `node`, if any: the two einsums of the builder's
+/// attention (f32, no quantisation, concrete shapes) and f32 softmax over the last axis.
+pub(crate) fn attention_op(model: &TypedModel, node: &TypedNode) -> TractResult<Option<Box<dyn TypedOp>>> {
+    let facts = model.node_input_facts(node.id)?;
+    let f32_inputs = facts.iter().all(|f| f.datum_type == f32::datum_type() && f.shape.is_concrete());
+    if let Some(e) = node.op_as::<EinSum>() {
+        if e.q_params.is_some() || e.operating_dt != f32::datum_type() || facts.len() != 2 || !f32_inputs {
+            return Ok(None);
+        }
+        return Ok(match e.axes.to_string().as_str() {
+            "camk,bank->ambn" if facts[0].shape[0].to_usize()? == 1 => Some(Box::new(AttnScores)),
+            "ambk,bakn->man" => Some(Box::new(AttnMix)),
+            _ => None,
+        });
+    }
+    if let Some(s) = node.op_as::<Softmax>() {
+        let last = facts[0].rank().checked_sub(1);
+        let plain = s.kind == SoftmaxKind::Softmax && s.quant_output_dt.is_none() && f32_inputs;
+        return Ok((plain && s.axes.as_slice() == last.as_slice()).then(|| Box::new(RowSoftmax) as Box<dyn TypedOp>));
+    }
+    Ok(None)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(op: &dyn EvalOp, inputs: Vec<Tensor>) -> Tensor {
+        let inputs = inputs.into_iter().map(|t| t.into_tvalue()).collect();
+        op.eval(&EvalContext::out_of_plan(), inputs).unwrap().remove(0).into_tensor()
+    }
+
+    fn values(n: usize, seed: usize) -> Vec<f32> {
+        (0..n).map(|i| (((i + seed) * 7919 % 1000) as f32) / 250.0 - 2.0).collect()
+    }
+
+    fn close(a: &[f32], b: &[f32]) {
+        assert_eq!(a.len(), b.len());
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() <= 1e-5 * y.abs().max(1.0), "{x} vs {y}");
+        }
+    }
+
+    #[test]
+    fn scores_mix_and_softmax_equal_their_definitions() {
+        let (heads, m, b, n, p) = (3, 5, 2, 7, 16);
+        let q = values(heads * m * p, 1);
+        let k = values(b * heads * n * p, 2);
+        let scores = run(
+            &AttnScores,
+            vec![
+                Tensor::from_shape(&[1, heads, m, p], &q).unwrap(),
+                Tensor::from_shape(&[b, heads, n, p], &k).unwrap(),
+            ],
+        );
+        let mut want = vec![];
+        for a in 0..heads {
+            for mi in 0..m {
+                for bi in 0..b {
+                    for j in 0..n {
+                        want.push(
+                            (0..p)
+                                .map(|x| q[(a * m + mi) * p + x] * k[((bi * heads + a) * n + j) * p + x])
+                                .sum::<f32>(),
+                        );
+                    }
+                }
+            }
+        }
+        assert_eq!(scores.shape(), &[heads, m, b, n]);
+        close(scores.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap(), &want);
+
+        let probs = run(&RowSoftmax, vec![Tensor::from_shape(&[heads, m, b * n], &want).unwrap()]);
+        let probs = probs.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().to_vec();
+        for (row, got) in want.chunks(b * n).zip(probs.chunks(b * n)) {
+            let max = row.iter().fold(f32::NEG_INFINITY, |a, &v| a.max(v));
+            let sum: f64 = row.iter().map(|&v| ((v - max) as f64).exp()).sum();
+            let exact: Vec<f32> = row.iter().map(|&v| (((v - max) as f64).exp() / sum) as f32).collect();
+            close(got, &exact);
+        }
+
+        let v = values(b * heads * n * p, 3);
+        let mix = run(
+            &AttnMix,
+            vec![
+                Tensor::from_shape(&[heads, m, b, n], &probs).unwrap(),
+                Tensor::from_shape(&[b, heads, n, p], &v).unwrap(),
+            ],
+        );
+        let mut want = vec![0f32; m * heads * p];
+        for mi in 0..m {
+            for a in 0..heads {
+                for x in 0..p {
+                    want[(mi * heads + a) * p + x] = (0..b)
+                        .flat_map(|bi| (0..n).map(move |j| (bi, j)))
+                        .map(|(bi, j)| probs[((a * m + mi) * b + bi) * n + j] * v[((bi * heads + a) * n + j) * p + x])
+                        .sum();
+                }
+            }
+        }
+        assert_eq!(mix.shape(), &[m, heads, p]);
+        close(mix.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap(), &want);
+    }
+
+    #[test]
+    fn exp_is_accurate_over_the_softmax_range() {
+        for i in 0..=8700 {
+            let x = -(i as f32) / 100.0;
+            let (got, want) = (exp_nonpositive(x), (x as f64).exp());
+            assert!(((got as f64 - want) / want).abs() < 5e-7, "exp({x}) = {got}, want {want}");
+        }
+    }
+}
