@@ -159,15 +159,16 @@ impl EvalOp for RowSoftmax {
         let input = args_1!(inputs);
         let row = *input.shape().last().context("RowSoftmax: scalar input")?;
         let mut out = input.into_tensor();
-        let mut plain = out.try_as_plain_ram_mut()?;
-        let data = plain.as_slice_mut::<f32>()?;
-        let rows_per_task = (data.len() / row).div_ceil(8).max(1);
-        par_chunks(data, rows_per_task * row, |_, chunk| {
-            for r in chunk.chunks_exact_mut(row) {
-                softmax_row(r);
-            }
-        });
-        drop(plain);
+        {
+            let mut plain = out.try_as_plain_ram_mut()?;
+            let data = plain.as_slice_mut::<f32>()?;
+            let rows_per_task = (data.len() / row).div_ceil(8).max(1);
+            par_chunks(data, rows_per_task * row, |_, chunk| {
+                for r in chunk.chunks_exact_mut(row) {
+                    softmax_row(r);
+                }
+            });
+        }
         Ok(tvec!(out.into_tvalue()))
     }
 }
