@@ -44,7 +44,8 @@ impl OnnxRunner {
             .enter(|| {
                 let mut model = model.into_typed()?.into_decluttered()?;
                 prl_runtime::accelerate(&mut model)?;
-                model.into_optimized()
+                model.optimize()?; // codegen only: the model is decluttered already
+                Ok(model)
             })
             .map_err(err)?;
         let plan = tp::TypedSimplePlan::new(model).map_err(err)?;

@@ -246,7 +246,8 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             // Declutter first: constants reach the convolutions' weight and bias inputs.
             let mut model = model.into_decluttered()?;
             crate::accelerate(&mut model)?;
-            model.into_optimized()
+            model.optimize()?; // codegen only: the model is decluttered already
+            Ok(model)
         })
         .map_err(tract_err)?;
     TypedSimplePlan::new(model).map_err(tract_err)
