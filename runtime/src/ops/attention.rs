@@ -111,7 +111,7 @@ impl EvalOp for AttnMix {
 /// `dst = Σ_i coef[i]·rows[i]` (`rows` is `coef.len()` rows of `dst.len()`), summed in order.
 fn axpys(dst: &mut [f32], coef: &[f32], rows: &[f32]) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+    if super::avx2_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
         return unsafe { axpys_fma(dst, coef, rows) };
     }
@@ -175,7 +175,7 @@ impl EvalOp for RowSoftmax {
 
 fn softmax_row(r: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+    if super::avx2_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
         return unsafe { softmax_row_fma(r) };
     }

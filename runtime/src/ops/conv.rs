@@ -9,11 +9,11 @@
 use std::sync::Arc;
 
 use tract_nnef::internal::*;
-use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat, PaddingSpec};
+use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
-use super::{all_ones, par_chunks};
+use super::{all_ones, pads_2d, par_chunks};
 
 /// Shape of one convolution: input `[N, ci, h, w]`, padding, kernel `kh` x `kw`, `co` outputs.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
@@ -168,13 +168,7 @@ pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option
     let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
     let facts = model.node_input_facts(node.id)?;
     let ps = &conv.pool_spec;
-    let pad = match &ps.padding {
-        PaddingSpec::Valid => [0; 4],
-        PaddingSpec::Explicit(b, a) | PaddingSpec::ExplicitOnnxPool(b, a, _) if b.len() == 2 && a.len() == 2 => {
-            [b[0], b[1], a[0], a[1]]
-        }
-        _ => return Ok(None),
-    };
+    let Some(pad) = pads_2d(&ps.padding) else { return Ok(None) };
     let plain = conv.q_params.is_none()
         && conv.kernel_fmt == KernelFormat::OIHW
         && ps.data_format == DataFormat::NCHW

@@ -44,7 +44,7 @@ pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+    if super::avx2_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
         unsafe { positions_avx2_fma(l, padded, weights, bias, out) };
         return;

@@ -75,14 +75,25 @@ fn all_ones(v: &Option<TVec<usize>>) -> bool {
     v.as_ref().is_none_or(|v| v.iter().all(|&s| s == 1))
 }
 
-/// Whether a padding spec adds no padding.
-fn no_padding(p: &tract_nnef::tract_core::ops::cnn::PaddingSpec) -> bool {
+/// A 2-D padding spec as `[top, left, bottom, right]`, if it is explicit (or none).
+fn pads_2d(p: &tract_nnef::tract_core::ops::cnn::PaddingSpec) -> Option<[usize; 4]> {
     use tract_nnef::tract_core::ops::cnn::PaddingSpec::*;
     match p {
-        Valid => true,
-        Explicit(b, a) | ExplicitOnnxPool(b, a, _) => b.iter().chain(a).all(|&p| p == 0),
-        _ => false,
+        Valid => Some([0; 4]),
+        Explicit(b, a) | ExplicitOnnxPool(b, a, _) if b.len() == 2 && a.len() == 2 => Some([b[0], b[1], a[0], a[1]]),
+        _ => None,
     }
+}
+
+/// Whether a 2-D padding spec adds no padding.
+fn no_padding(p: &tract_nnef::tract_core::ops::cnn::PaddingSpec) -> bool {
+    pads_2d(p) == Some([0; 4])
+}
+
+/// Whether the CPU has AVX2 and FMA (the kernels' fused multiply-add path on x86_64).
+#[cfg(target_arch = "x86_64")]
+fn avx2_fma() -> bool {
+    std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
 }
 
 /// Run `f(i, chunk)` on every `len`-long chunk of `out` (the last may be shorter), on tract's

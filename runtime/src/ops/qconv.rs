@@ -11,10 +11,10 @@
 use std::sync::Arc;
 
 use tract_nnef::internal::*;
-use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat, PaddingSpec};
+use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::{all_ones, par_chunks, ConvShape};
+use super::{all_ones, pads_2d, par_chunks, ConvShape};
 
 /// Output channels per tile.
 const ROWS: usize = 8;
@@ -229,13 +229,7 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     }
     let facts = model.node_input_facts(node.id)?;
     let ps = &conv.pool_spec;
-    let pad = match &ps.padding {
-        PaddingSpec::Valid => [0; 4],
-        PaddingSpec::Explicit(b, a) | PaddingSpec::ExplicitOnnxPool(b, a, _) if b.len() == 2 && a.len() == 2 => {
-            [b[0], b[1], a[0], a[1]]
-        }
-        _ => return Ok(None),
-    };
+    let Some(pad) = pads_2d(&ps.padding) else { return Ok(None) };
     let out_dt = node.outputs[0].fact.datum_type;
     let plain = conv.q_params.is_some()
         && facts.len() == 9
