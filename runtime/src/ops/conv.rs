@@ -13,7 +13,7 @@ use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
-use super::{all_ones, pads_2d, par_chunks};
+use super::{all_ones, pads_2d, par_chunks, same_bits};
 
 /// Shape of one convolution: input `[N, ci, h, w]`, padding, kernel `kh` x `kw`, `co` outputs.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
@@ -32,13 +32,23 @@ pub struct ConvShape {
 }
 
 impl ConvShape {
-    fn padded(&self) -> (usize, usize) {
+    /// Rows and columns of the zero-padded input.
+    pub(crate) fn padded(&self) -> (usize, usize) {
         (self.h + self.pad[0] + self.pad[2], self.w + self.pad[1] + self.pad[3])
     }
 
-    fn out(&self) -> (usize, usize) {
+    /// Output rows and columns.
+    pub(crate) fn out(&self) -> (usize, usize) {
         let (hp, wp) = self.padded();
         (hp - self.kh + 1, wp - self.kw + 1)
+    }
+
+    /// Offset of every tap `(plane, i, j)` in a padded input of `planes` planes (channels, or
+    /// groups of four channels), in packing order.
+    pub(crate) fn tap_offsets(&self, planes: usize) -> Vec<usize> {
+        let (hp, wp) = self.padded();
+        let (kh, kw) = (self.kh, self.kw);
+        (0..planes).flat_map(|c| (0..kh).flat_map(move |i| (0..kw).map(move |j| (c * hp + i) * wp + j))).collect()
     }
 }
 
@@ -60,10 +70,7 @@ impl std::fmt::Debug for PackedConv {
 
 impl PartialEq for PackedConv {
     fn eq(&self, other: &Self) -> bool {
-        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-        self.shape == other.shape
-            && bits(&self.weights) == bits(&other.weights)
-            && bits(&self.bias) == bits(&other.bias)
+        self.shape == other.shape && same_bits(&self.weights, &other.weights) && same_bits(&self.bias, &other.bias)
     }
 }
 
@@ -85,11 +92,9 @@ impl PackedConv {
         }
         let bias: Vec<f32> =
             (0..blocks * ROWS).map(|o| if bias.len() == 1 { bias[0] } else { *bias.get(o).unwrap_or(&0.0) }).collect();
-        let (hp, wp) = shape.padded();
+        let (_, wp) = shape.padded();
         let (oh, ow) = shape.out();
-        let offsets = (0..shape.ci)
-            .flat_map(|c| (0..shape.kh).flat_map(move |i| (0..shape.kw).map(move |j| (c * hp + i) * wp + j)));
-        let layout = Layout { taps: offsets.collect(), wp, oh, ow };
+        let layout = Layout { taps: shape.tap_offsets(shape.ci), wp, oh, ow };
         Ok(PackedConv { shape, layout: Arc::new(layout), weights: Arc::new(packed), bias: Arc::new(bias) })
     }
 

@@ -90,6 +90,11 @@ fn no_padding(p: &tract_nnef::tract_core::ops::cnn::PaddingSpec) -> bool {
     pads_2d(p) == Some([0; 4])
 }
 
+/// Whether two f32 slices hold the same bit patterns (operator equality on constants).
+fn same_bits(a: &[f32], b: &[f32]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
+}
+
 /// Whether the CPU has AVX2 and FMA (the kernels' fused multiply-add path on x86_64).
 #[cfg(target_arch = "x86_64")]
 fn avx2_fma() -> bool {

@@ -14,7 +14,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::{all_ones, pads_2d, par_chunks, ConvShape};
+use super::{all_ones, pads_2d, par_chunks, same_bits, ConvShape};
 
 /// Output channels per tile.
 const ROWS: usize = 8;
@@ -29,6 +29,8 @@ pub struct PackedQConv {
     shape: ConvShape,
     /// `[o / 8][group (c/4, i, j)][o % 8]` words of four i8 weights (channels `4·(c/4)..+4`).
     weights: Arc<Vec<i32>>,
+    /// Word offset of every tap group `(c/4, i, j)` in the padded input, in packing order.
+    taps: Arc<Vec<usize>>,
     /// Per output channel: `bias − x0·Σw`, and the requantisation scale.
     offset: Arc<Vec<i32>>,
     scale: Arc<Vec<f32>>,
@@ -45,28 +47,15 @@ impl std::fmt::Debug for PackedQConv {
 
 impl PartialEq for PackedQConv {
     fn eq(&self, other: &Self) -> bool {
-        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         self.shape == other.shape
             && self.weights == other.weights
             && self.offset == other.offset
-            && bits(&self.scale) == bits(&other.scale)
+            && same_bits(&self.scale, &other.scale)
             && (self.x0, self.y0, self.out_dt) == (other.x0, other.y0, other.out_dt)
     }
 }
 
 impl Eq for PackedQConv {}
-
-impl PackedQConv {
-    fn padded(&self) -> (usize, usize) {
-        let s = &self.shape;
-        (s.h + s.pad[0] + s.pad[2], s.w + s.pad[1] + s.pad[3])
-    }
-
-    fn out(&self) -> (usize, usize) {
-        let (hp, wp) = self.padded();
-        (hp - self.shape.kh + 1, wp - self.shape.kw + 1)
-    }
-}
 
 impl Op for PackedQConv {
     fn name(&self) -> StaticName {
@@ -93,15 +82,14 @@ impl EvalOp for PackedQConv {
         let input = input.try_as_plain_ram()?;
         // SAFETY: the datum type is u8, possibly with quantisation parameters (checked above).
         let input = unsafe { input.as_slice_unchecked::<u8>() };
-        let (hp, wp) = self.padded();
-        let (oh, ow) = self.out();
+        let (hp, wp) = s.padded();
+        let (oh, ow) = s.out();
         let plane = oh * ow;
         let c4 = ci.div_ceil(4);
         let positions = (oh - 1) * wp + ow;
         // Words of four channels; room past the end for the last tile.
         let mut words = vec![u32::from_ne_bytes([self.x0; 4]); c4 * hp * wp + PX + wp];
-        let taps: Vec<usize> =
-            (0..c4).flat_map(|g| (0..s.kh).flat_map(move |i| (0..s.kw).map(move |j| (g * hp + i) * wp + j))).collect();
+        let taps = &self.taps;
         let mut out = vec![0u8; n * s.co * plane];
         for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
             let bytes: &mut [u8] = bytemuck_words(&mut words);
@@ -120,7 +108,7 @@ impl EvalOp for PackedQConv {
                 let weights = &self.weights[b * taps.len() * ROWS..(b + 1) * taps.len() * ROWS];
                 // SAFETY: the op is only made where the CPU has AVX-512 VNNI ([`packed_q`]);
                 // every tile of every tap lies in `words` (padded by `PX + wp` words).
-                unsafe { tiles_vnni(words, &taps, weights, positions, &mut sums) };
+                unsafe { tiles_vnni(words, taps, weights, positions, &mut sums) };
                 for r in 0..out.len() / plane {
                     let o = b * ROWS + r;
                     let (offset, scale) = (self.offset[o], self.scale[o]);
@@ -185,13 +173,13 @@ unsafe fn tiles_vnni(_: &[u32], _: &[usize], _: &[i32], _: usize, _: &mut [i32])
 
 impl TypedOp for PackedQConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
-        let (oh, ow) = self.out();
+        let (oh, ow) = self.shape.out();
         Ok(tvec!(self.out_dt.fact([inputs[0].shape[0].clone(), self.shape.co.into(), oh.into(), ow.into()])))
     }
 
     fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
-        let (oh, ow) = self.out();
         let s = &self.shape;
+        let (oh, ow) = s.out();
         let macs = s.co * oh * ow * s.ci * s.kh * s.kw;
         Ok(tvec!((Cost::FMA(i32::datum_type()), inputs[0].shape[0].clone() * macs)))
     }
@@ -316,6 +304,7 @@ impl PackedQConv {
         }
         let weights = words.iter().map(|b| i32::from_ne_bytes(b.map(|v| v as u8))).collect();
         Ok(PackedQConv {
+            taps: Arc::new(shape.tap_offsets(ci.div_ceil(4))),
             shape,
             weights: Arc::new(weights),
             offset: Arc::new(offset),
