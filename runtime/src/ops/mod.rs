@@ -1,15 +1,17 @@
 //! Operators of our own that tract runs in place of its generic ones where they are faster
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
 //! ([`DepthwiseXCorr`]), stride-1 convolutions ([`PackedConv`], and [`PackedQConv`] for int8
-//! plans on CPUs with AVX-512 VNNI), max pooling ([`ChannelMaxPool`]) and HMG's attention
-//! ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]). Plans on disk keep tract's
-//! standard operators, so the choice is made on the machine that runs the plan.
+//! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some), max pooling
+//! ([`ChannelMaxPool`]) and HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]). Plans
+//! on disk keep tract's standard operators, so the choice is made on the machine that runs the
+//! plan.
 
 mod attention;
 mod conv;
 mod conv_kernel;
 mod pool;
 mod qconv;
+mod qconv_amx;
 mod xcorr;
 mod xcorr_kernel;
 
