@@ -47,21 +47,20 @@ impl EvalOp for AttnScores {
         ensure!(kh == heads && kp == p, "AttnScores: q {:?}, keys {:?}", q.shape(), keys.shape());
         let (qs, ks) = (slice(&q)?, slice(&keys)?);
         let row = b * n;
+        // Key rows padded to whole vectors of 16.
+        let ldk = row.next_multiple_of(NR);
         let mut out = vec![0f32; heads * m * row];
         par_chunks(&mut out, m * row, |a, out| {
-            // This head's keys transposed: [k][(b, n)], so each query row is `p` axpys.
-            let mut kt = vec![0f32; p * row];
+            // This head's keys transposed: [k][(b, n)], so that the scores are `q · kt`.
+            let mut kt = vec![0f32; p * ldk];
             for bi in 0..b {
                 for j in 0..n {
                     for k in 0..p {
-                        kt[k * row + bi * n + j] = ks[((bi * heads + a) * n + j) * p + k];
+                        kt[k * ldk + bi * n + j] = ks[((bi * heads + a) * n + j) * p + k];
                     }
                 }
             }
-            for (mi, dst) in out.chunks_exact_mut(row).enumerate() {
-                let qrow = &qs[(a * m + mi) * p..(a * m + mi + 1) * p];
-                axpys(dst, qrow, &kt);
-            }
+            gemm(out, row, &qs[a * m * p..(a + 1) * m * p], p, &kt, ldk);
         });
         Ok(tvec!(tract_ndarray::Array4::from_shape_vec((heads, m, b, n), out)?.into_tensor().into_tvalue()))
     }
@@ -92,10 +91,14 @@ impl EvalOp for AttnMix {
             for bi in 0..b {
                 va.extend_from_slice(&vs[(bi * heads + a) * k * n..(bi * heads + a + 1) * k * n]);
             }
-            for (mi, dst) in out.chunks_exact_mut(n).enumerate() {
-                let prow = &ps[(a * m + mi) * b * k..(a * m + mi + 1) * b * k];
-                axpys(dst, prow, &va);
+            let (rows, ld) = (b * k, n.next_multiple_of(NR));
+            if ld != n {
+                va = va
+                    .chunks_exact(n)
+                    .flat_map(|r| r.iter().copied().chain(std::iter::repeat_n(0.0, ld - n)))
+                    .collect();
             }
+            gemm(out, n, &ps[a * m * rows..(a + 1) * m * rows], rows, &va, ld);
         });
         let mut out = vec![0f32; m * heads * n];
         for a in 0..heads {
@@ -108,39 +111,62 @@ impl EvalOp for AttnMix {
     }
 }
 
-/// `dst = Σ_i coef[i]·rows[i]` (`rows` is `coef.len()` rows of `dst.len()`), summed in order.
-fn axpys(dst: &mut [f32], coef: &[f32], rows: &[f32]) {
+/// Rows of `dst` computed together (accumulators: 6 x 16 lanes).
+const MR: usize = 6;
+/// Columns of `dst` computed together.
+const NR: usize = 16;
+
+/// `dst[i][j] = Σ_k a[i][k]·b[k][j]` for `j < n`: `a` is rows of `kl`, `b` is `kl` rows of
+/// `ldb` (a multiple of [`NR`], at least `n`, zero past `n`), `dst` rows of `n`. Sums in order
+/// of `k`.
+fn gemm(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") && super::avx2_fma() {
+        // SAFETY: the CPU has the features the function is compiled for.
+        return unsafe { gemm_avx512(dst, n, a, kl, b, ldb) };
+    }
     #[cfg(target_arch = "x86_64")]
     if super::avx2_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { axpys_fma(dst, coef, rows) };
+        return unsafe { gemm_fma(dst, n, a, kl, b, ldb) };
     }
-    axpys_generic::<{ cfg!(target_arch = "aarch64") }>(dst, coef, rows)
+    gemm_generic::<{ cfg!(target_arch = "aarch64") }>(dst, n, a, kl, b, ldb)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn gemm_avx512(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
+    gemm_generic::<true>(dst, n, a, kl, b, ldb)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn axpys_fma(dst: &mut [f32], coef: &[f32], rows: &[f32]) {
-    axpys_generic::<true>(dst, coef, rows)
+unsafe fn gemm_fma(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
+    gemm_generic::<true>(dst, n, a, kl, b, ldb)
 }
 
 #[inline(always)]
-fn axpys_generic<const FUSED: bool>(dst: &mut [f32], coef: &[f32], rows: &[f32]) {
-    // Rows of 16 (the attention's parts) summed in registers.
-    if let Ok(dst16) = <&mut [f32; 16]>::try_from(&mut *dst) {
-        let mut acc = [0f32; 16];
-        for (&c, row) in coef.iter().zip(rows.chunks_exact(16)) {
-            for (a, &r) in acc.iter_mut().zip(row) {
-                *a = if FUSED { c.mul_add(r, *a) } else { c * r + *a };
+fn gemm_generic<const FUSED: bool>(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
+    let m = a.len() / kl;
+    for i in (0..m).step_by(MR) {
+        let mr = MR.min(m - i);
+        // Rows past the last are computed again from the last (and not stored).
+        let rows: [&[f32]; MR] = std::array::from_fn(|r| &a[(i + r.min(mr - 1)) * kl..][..kl]);
+        for j0 in (0..n).step_by(NR) {
+            let mut acc = [[0f32; NR]; MR];
+            for (k, brow) in b.chunks_exact(ldb).take(kl).enumerate() {
+                let brow: &[f32; NR] = brow[j0..j0 + NR].try_into().expect("rows of whole vectors");
+                for (acc, row) in acc.iter_mut().zip(&rows) {
+                    let c = row[k];
+                    for (x, &y) in acc.iter_mut().zip(brow) {
+                        *x = if FUSED { c.mul_add(y, *x) } else { c * y + *x };
+                    }
+                }
             }
-        }
-        *dst16 = acc;
-        return;
-    }
-    dst.fill(0.0);
-    for (&c, row) in coef.iter().zip(rows.chunks_exact(dst.len())) {
-        for (d, &r) in dst.iter_mut().zip(row) {
-            *d = if FUSED { c.mul_add(r, *d) } else { c * r + *d };
+            let w = NR.min(n - j0);
+            for (r, acc) in acc.iter().enumerate().take(mr) {
+                dst[(i + r) * n + j0..][..w].copy_from_slice(&acc[..w]);
+            }
         }
     }
 }
@@ -175,6 +201,11 @@ impl EvalOp for RowSoftmax {
 
 fn softmax_row(r: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") && super::avx2_fma() {
+        // SAFETY: the CPU has the features the function is compiled for.
+        return unsafe { softmax_row_avx512(r) };
+    }
+    #[cfg(target_arch = "x86_64")]
     if super::avx2_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
         return unsafe { softmax_row_fma(r) };
@@ -188,10 +219,16 @@ unsafe fn softmax_row_fma(r: &mut [f32]) {
     softmax_row_generic(r)
 }
 
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn softmax_row_avx512(r: &mut [f32]) {
+    softmax_row_generic(r)
+}
+
 #[inline(always)]
 fn softmax_row_generic(r: &mut [f32]) {
-    // Eight lanes of max and sum, so that the loops vectorise.
-    const L: usize = 8;
+    // Sixteen lanes of max and sum, so that the loops vectorise.
+    const L: usize = 16;
     let mut lanes = [f32::NEG_INFINITY; L];
     let mut chunks = r.chunks_exact(L);
     for c in &mut chunks {
@@ -224,7 +261,9 @@ fn exp_nonpositive(x: f32) -> f32 {
     let n = (x * std::f32::consts::LOG2_E).round_ties_even();
     let r = x - n * 0.693_359_4 + n * 2.121_944_4e-4; // ln2 in two parts (Cephes)
     let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
-    p * f32::from_bits(((n as i32 + 127) as u32) << 23)
+    // SAFETY: `n` is a whole number in [-126, 0] (x is clamped), so the cast is exact.
+    let n = unsafe { n.to_int_unchecked::<i32>() };
+    p * f32::from_bits(((n + 127) as u32) << 23)
 }
 
 macro_rules! same_shape_typed_op {

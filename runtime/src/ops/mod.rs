@@ -2,13 +2,15 @@
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
 //! ([`DepthwiseXCorr`]), stride-1 convolutions ([`PackedConv`], and [`PackedQConv`] for int8
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some), max pooling
-//! ([`ChannelMaxPool`]) and HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]). Plans
+//! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]) and
+//! layer norms ([`LayerNormCore`]). Plans
 //! on disk keep tract's standard operators, so the choice is made on the machine that runs the
 //! plan.
 
 mod attention;
 mod conv;
 mod conv_kernel;
+mod norm;
 mod pool;
 mod qconv;
 mod qconv_amx;
@@ -17,6 +19,7 @@ mod xcorr_kernel;
 
 pub use attention::{AttnMix, AttnScores, RowSoftmax};
 pub use conv::{ConvShape, PackedConv};
+pub use norm::LayerNormCore;
 pub use pool::ChannelMaxPool;
 pub use qconv::PackedQConv;
 pub use xcorr::DepthwiseXCorr;
@@ -36,6 +39,8 @@ pub struct Accelerated {
     pub int8_convolutions: usize,
     /// Attention products and softmaxes made [`AttnScores`], [`AttnMix`], [`RowSoftmax`].
     pub attention: usize,
+    /// Layer norms (tract's centring and `RmsNorm`) made [`LayerNormCore`].
+    pub norms: usize,
 }
 
 /// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
@@ -57,6 +62,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         } else if let Some(op) = attention::attention_op(model, node)? {
             done.attention += 1;
             (op, node.inputs.iter().copied().collect())
+        } else if let Some((op, x)) = norm::layer_norm(model, node)? {
+            done.norms += 1;
+            (Box::new(op), tvec![x])
         } else if xcorr::matches(model, node)? {
             done.correlations += 1;
             (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())
