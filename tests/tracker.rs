@@ -108,8 +108,8 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
     let dir = common::golden_dir();
     let golden = read_golden(&dir.join("golden.safetensors")).unwrap();
     let plan = Plan::load(common::reference_plan()).unwrap();
-    // The five correlations, the stride-1 convolutions, the pools and HMG's norms and softmaxes
-    // run as the runtime's own operators.
+    // The five correlations, the stride-1 convolutions, the pools and HMG's norms, softmaxes
+    // and linear layers run as the runtime's own operators.
     let nodes = plan.search_nodes();
     let named = |op: &str| -> Vec<String> { nodes.iter().filter(|n| n.op == op).map(|n| n.name.clone()).collect() };
     let mut xcorr = named("DepthwiseXCorr");
@@ -122,6 +122,10 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
     assert_eq!(named("ChannelMaxPool").len(), 2, "the backbone's max pools");
     assert_eq!(named("LayerNormCore").len(), 4, "HMG's layer norms");
     assert_eq!(named("RowSoftmax").len(), 6, "HMG's attention softmaxes");
+    let linear = named("ConstMatMul");
+    for layer in ["blocks_0_attn_qkv", "blocks_0_mlp_fc1", "blocks_1_attn_qkv", "blocks_1_mlp_fc1", "patch_embed1"] {
+        assert!(linear.iter().any(|n| n.contains(layer)), "{layer} in {linear:?}");
+    }
     let zf = plan.template(&golden["z"].data).unwrap();
     let out = plan.search(&golden["x"].data, &zf).unwrap();
     for (name, ours) in [("loc", &out.loc), ("cls1", &out.cls1), ("cls2", &out.cls2)] {

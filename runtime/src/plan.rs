@@ -185,7 +185,7 @@ impl Plan {
                 flop: node_flop(model, n),
             })
             .collect();
-        out.sort_by(|a, b| b.time.cmp(&a.time));
+        out.sort_by_key(|n| std::cmp::Reverse(n.time));
         Ok(out)
     }
 }

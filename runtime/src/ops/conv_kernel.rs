@@ -55,6 +55,7 @@ pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &
 /// Write a tile's `acc[r][q]` (position `p0 + q`) to the output planes, dropping the wide
 /// columns and the positions past the end.
 #[inline(always)]
+#[allow(clippy::needless_range_loop)] // q indexes every row's accumulators
 fn scatter<const PX: usize>(l: &Layout, acc: &[[f32; PX]; ROWS], bias: &[f32; ROWS], p0: usize, out: &mut [f32]) {
     let plane = l.oh * l.ow;
     let rows = out.len() / plane;

@@ -2,14 +2,14 @@
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
 //! ([`DepthwiseXCorr`]), stride-1 convolutions ([`PackedConv`], and [`PackedQConv`] for int8
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some), max pooling
-//! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]) and
-//! layer norms ([`LayerNormCore`]). Plans
-//! on disk keep tract's standard operators, so the choice is made on the machine that runs the
-//! plan.
+//! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
+//! norms ([`LayerNormCore`]) and linear layers ([`ConstMatMul`]). Plans on disk keep tract's
+//! standard operators, so the choice is made on the machine that runs the plan.
 
 mod attention;
 mod conv;
 mod conv_kernel;
+mod matmul;
 mod norm;
 mod pool;
 mod qconv;
@@ -19,6 +19,7 @@ mod xcorr_kernel;
 
 pub use attention::{AttnMix, AttnScores, RowSoftmax};
 pub use conv::{ConvShape, PackedConv};
+pub use matmul::ConstMatMul;
 pub use norm::LayerNormCore;
 pub use pool::ChannelMaxPool;
 pub use qconv::PackedQConv;
@@ -41,6 +42,8 @@ pub struct Accelerated {
     pub attention: usize,
     /// Layer norms (tract's centring and `RmsNorm`) made [`LayerNormCore`].
     pub norms: usize,
+    /// f32 products with a constant operand made [`ConstMatMul`].
+    pub matmuls: usize,
 }
 
 /// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
@@ -64,6 +67,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
             (op, node.inputs.iter().copied().collect())
         } else if let Some((op, x)) = norm::layer_norm(model, node)? {
             done.norms += 1;
+            (Box::new(op), tvec![x])
+        } else if let Some((op, x)) = matmul::const_matmul(model, node)? {
+            done.matmuls += 1;
             (Box::new(op), tvec![x])
         } else if xcorr::matches(model, node)? {
             done.correlations += 1;
@@ -109,6 +115,36 @@ fn same_bits(a: &[f32], b: &[f32]) -> bool {
 #[cfg(target_arch = "x86_64")]
 fn avx2_fma() -> bool {
     std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+}
+
+/// A pointer that threads writing disjoint elements share.
+struct SyncPtr<T>(*mut T);
+
+// SAFETY: users write disjoint elements only, and the buffer outlives the threads' work.
+unsafe impl<T> Send for SyncPtr<T> {}
+// SAFETY: as above.
+unsafe impl<T> Sync for SyncPtr<T> {}
+
+impl<T> SyncPtr<T> {
+    /// The element at `i`.
+    ///
+    /// # Safety
+    /// `i` is within the buffer, and no other thread accesses that element meanwhile.
+    unsafe fn at(&self, i: usize) -> *mut T {
+        // SAFETY: the caller keeps `i` within the buffer.
+        unsafe { self.0.add(i) }
+    }
+}
+
+/// Run `f(i)` for every `i < n`, on tract's thread pool when it has one.
+fn par_for(n: usize, f: impl Fn(usize) + Sync) {
+    use rayon::prelude::*;
+    use tract_linalg::multithread::{current_tract_executor, Executor};
+    match current_tract_executor() {
+        Executor::SingleThread => (0..n).for_each(f),
+        Executor::MultiThread(pool) => pool.install(|| (0..n).into_par_iter().for_each(&f)),
+        Executor::RayonGlobal => (0..n).into_par_iter().for_each(&f),
+    }
 }
 
 /// Run `f(i, chunk)` on every `len`-long chunk of `out` (the last may be shorter), on tract's
