@@ -53,7 +53,8 @@ impl ConvShape {
 }
 
 /// `out[n,o,y,x] = bias[o] + Σ_{c,i,j} pad(input)[n,c,y+i,x+j]·weight[o,c,i,j]`, stride 1, with
-/// the weights packed `[o / 8][(c,i,j)][o % 8]` when the op is made.
+/// the weights packed `[o / 8][(c,i,j)][o % 8]` when the op is made (taps `(c,i,j)` whose
+/// weights are all zero left out).
 #[derive(Clone)]
 pub struct PackedConv {
     shape: ConvShape,
@@ -82,19 +83,23 @@ impl PackedConv {
         let taps = shape.ci * shape.kh * shape.kw;
         ensure!(weight.len() == shape.co * taps, "PackedConv: {} weights for {shape:?}", weight.len());
         ensure!(bias.len() == 1 || bias.len() == shape.co, "PackedConv: {} bias values for {shape:?}", bias.len());
+        // Taps whose weight is zero for every output (the padding of a space-to-depth kernel)
+        // are left out: with finite inputs they add exact zeros.
+        let live: Vec<usize> = (0..taps).filter(|&t| weight.iter().skip(t).step_by(taps).any(|&v| v != 0.0)).collect();
         let blocks = shape.co.div_ceil(ROWS);
-        let mut packed = vec![0f32; blocks * taps * ROWS];
+        let mut packed = vec![0f32; blocks * live.len() * ROWS];
         for (o, w) in weight.chunks_exact(taps).enumerate() {
-            let block = &mut packed[(o / ROWS) * taps * ROWS..];
-            for (t, &v) in w.iter().enumerate() {
-                block[t * ROWS + o % ROWS] = v;
+            let block = &mut packed[(o / ROWS) * live.len() * ROWS..];
+            for (i, &t) in live.iter().enumerate() {
+                block[i * ROWS + o % ROWS] = w[t];
             }
         }
         let bias: Vec<f32> =
             (0..blocks * ROWS).map(|o| if bias.len() == 1 { bias[0] } else { *bias.get(o).unwrap_or(&0.0) }).collect();
         let (_, wp) = shape.padded();
         let (oh, ow) = shape.out();
-        let layout = Layout { taps: shape.tap_offsets(shape.ci), wp, oh, ow };
+        let offsets = shape.tap_offsets(shape.ci);
+        let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp, oh, ow };
         Ok(PackedConv { shape, layout: Arc::new(layout), weights: Arc::new(packed), bias: Arc::new(bias) })
     }
 
@@ -130,7 +135,7 @@ impl EvalOp for PackedConv {
         let (hp, wp) = s.padded();
         let (oh, ow) = s.out();
         let plane = oh * ow;
-        let taps = s.ci * s.kh * s.kw;
+        let taps = self.layout.taps.len();
         let mut out = vec![0f32; n * s.co * plane];
         let mut padded = vec![0f32; ci * hp * wp + MAX_PX + wp];
         for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
@@ -160,7 +165,7 @@ impl TypedOp for PackedConv {
     fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
         let (oh, ow) = self.shape.out();
         let s = &self.shape;
-        let macs = s.co * oh * ow * s.ci * s.kh * s.kw;
+        let macs = s.co * oh * ow * self.layout.taps.len();
         Ok(tvec!((Cost::FMA(f32::datum_type()), inputs[0].shape[0].clone() * macs)))
     }
 
@@ -231,17 +236,22 @@ mod tests {
     fn equals_the_direct_sum_with_padding_and_a_partial_channel_block() {
         // 11 output channels: one whole block of 8 and a partial one; 3 taps chunks of 128 for
         // the 300-tap layer; outputs of 1 to 2 tiles.
-        for s in [
-            ConvShape { ci: 3, h: 9, w: 7, co: 11, kh: 3, kw: 3, pad: [1, 1, 1, 1] },
-            ConvShape { ci: 12, h: 14, w: 14, co: 8, kh: 5, kw: 5, pad: [0; 4] },
-            ConvShape { ci: 5, h: 6, w: 40, co: 3, kh: 2, kw: 4, pad: [0, 2, 1, 0] },
+        // The last: every third tap's weights are zero for all outputs (left out when packed).
+        for (s, zero_taps) in [
+            (ConvShape { ci: 3, h: 9, w: 7, co: 11, kh: 3, kw: 3, pad: [1, 1, 1, 1] }, false),
+            (ConvShape { ci: 12, h: 14, w: 14, co: 8, kh: 5, kw: 5, pad: [0; 4] }, false),
+            (ConvShape { ci: 5, h: 6, w: 40, co: 3, kh: 2, kw: 4, pad: [0, 2, 1, 0] }, false),
+            (ConvShape { ci: 4, h: 12, w: 12, co: 9, kh: 6, kw: 6, pad: [0; 4] }, true),
         ] {
             let n_in = s.ci * s.h * s.w;
-            let n_w = s.co * s.ci * s.kh * s.kw;
+            let taps = s.ci * s.kh * s.kw;
             let input: Vec<f32> = (0..2 * n_in).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
-            let weight: Vec<f32> = (0..n_w).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+            let weight: Vec<f32> = (0..s.co * taps)
+                .map(|i| if zero_taps && i % taps % 3 == 0 { 0.0 } else { ((i * 104729 % 997) as f32) / 498.0 - 1.0 })
+                .collect();
             let bias: Vec<f32> = (0..s.co).map(|o| o as f32 / 4.0).collect();
             let op = PackedConv::new(s.clone(), &weight, &bias).unwrap();
+            assert_eq!(op.layout.taps.len(), if zero_taps { taps - taps.div_ceil(3) } else { taps });
             let x = tract_ndarray::Array4::from_shape_vec((2, s.ci, s.h, s.w), input.clone()).unwrap();
             let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();
             let out = out[0].try_as_plain_ram().unwrap();
