@@ -1,6 +1,6 @@
 //! The inner loop of the depthwise cross-correlation: one channel at a time, output rows
 //! accumulated in registers as 16-wide strips of columns, one fused multiply-add per kernel tap
-//! and column. Every output value is the sum over the kernel rows, then columns, in that order.
+//! and column (on AVX-512, four output rows at a time, so each input load serves four). Every output value is the sum over the kernel rows, then columns, in that order.
 
 /// Columns per accumulator block (one AVX-512 register, two AVX ones, four NEON ones).
 const LANES: usize = 16;
@@ -56,6 +56,12 @@ pub(crate) fn correlate_channel(
         dst[g.w..].fill(0.0);
     }
     #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") {
+        // SAFETY: the CPU has the features the function is compiled for (checked just above).
+        unsafe { strips_avx512(g, scratch, kernel, bias, out) };
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
     if super::avx2_fma() {
         // SAFETY: the CPU has the features the function is compiled for (checked just above).
         unsafe { strips_avx2_fma(g, scratch, kernel, bias, out) };
@@ -68,6 +74,81 @@ pub(crate) fn correlate_channel(
 #[target_feature(enable = "avx2,fma")]
 unsafe fn strips_avx2_fma(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
     strips::<true>(g, padded, kernel, bias, out)
+}
+
+/// AVX-512: strips of up to 3 registers of columns, 4 output rows at a time, so that each
+/// input vector loaded serves up to 4 kernel rows (the generic strips reload it for each).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn strips_avx512(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
+    const ROWS: usize = 4;
+    let (ow, oh) = (g.out_w(), g.out_h());
+    let mut x0 = 0;
+    while x0 < ow {
+        let cols = (ow - x0).min(3 * LANES);
+        let mut y = 0;
+        while y < oh {
+            let rows = if oh - y >= ROWS { ROWS } else { 1 };
+            // SAFETY: the feature is enabled here; the loads stay in `padded` (rows padded to
+            // whole blocks), the stores in `out` (masked to `cols`).
+            unsafe {
+                match (rows, cols.div_ceil(LANES)) {
+                    (ROWS, 1) => rows_avx512::<ROWS, 1>(g, padded, kernel, bias, out, y, x0, cols),
+                    (ROWS, 2) => rows_avx512::<ROWS, 2>(g, padded, kernel, bias, out, y, x0, cols),
+                    (ROWS, _) => rows_avx512::<ROWS, 3>(g, padded, kernel, bias, out, y, x0, cols),
+                    (_, 1) => rows_avx512::<1, 1>(g, padded, kernel, bias, out, y, x0, cols),
+                    (_, 2) => rows_avx512::<1, 2>(g, padded, kernel, bias, out, y, x0, cols),
+                    _ => rows_avx512::<1, 3>(g, padded, kernel, bias, out, y, x0, cols),
+                }
+            }
+            y += rows;
+        }
+        x0 += cols;
+    }
+}
+
+/// Output rows `y..y+R`, columns `x0..x0+cols` (`B` registers): input row `y + r` adds to
+/// output row `y + q` with kernel row `r − q`, so the sums keep their (row, column) order.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn rows_avx512<const R: usize, const B: usize>(
+    g: Geometry,
+    padded: &[f32],
+    kernel: &[f32],
+    bias: f32,
+    out: &mut [f32],
+    y: usize,
+    x0: usize,
+    cols: usize,
+) {
+    use std::arch::x86_64::*;
+    let (wp, ow) = (g.padded_w(), g.out_w());
+    assert!((y + R + g.kh - 1) * wp <= padded.len() && x0 + B * LANES + g.kw - 1 <= wp && kernel.len() == g.kh * g.kw);
+    let mut acc = [[_mm512_set1_ps(bias); B]; R];
+    for r in 0..g.kh + R - 1 {
+        let row = padded.as_ptr().add((y + r) * wp + x0);
+        for j in 0..g.kw {
+            // SAFETY: within the row (asserted above).
+            let v: [__m512; B] = std::array::from_fn(|b| unsafe { _mm512_loadu_ps(row.add(j + b * LANES)) });
+            for (q, acc) in acc.iter_mut().enumerate() {
+                if r >= q && r - q < g.kh {
+                    let k = _mm512_set1_ps(kernel[(r - q) * g.kw + j]);
+                    for (a, v) in acc.iter_mut().zip(v) {
+                        *a = _mm512_fmadd_ps(k, v, *a);
+                    }
+                }
+            }
+        }
+    }
+    for (q, acc) in acc.iter().enumerate() {
+        let dst = &mut out[(y + q) * ow + x0..(y + q) * ow + x0 + cols];
+        for (b, a) in acc.iter().enumerate() {
+            let n = cols.saturating_sub(b * LANES).min(LANES);
+            // SAFETY: `n` floats from `b·16` lie in `dst`.
+            unsafe { _mm512_mask_storeu_ps(dst.as_mut_ptr().add(b * LANES), ((1u32 << n) - 1) as u16, *a) };
+        }
+    }
 }
 
 /// Every strip of up to `MAX_BLOCKS` blocks of output columns. `FUSED`: use fused multiply-add
@@ -143,9 +224,10 @@ mod tests {
 
     #[test]
     fn equals_the_direct_sum_for_every_strip_width() {
-        // Output widths of 1, 16, 17, 41 (three blocks), 64 and 70 (two strips) columns.
+        // Output widths of 1, 16, 17, 41 (three blocks), 64 and 70 (two strips) columns; output
+        // heights of 1, 16 (groups of 4 rows), 41 and 7 (a group and single rows).
         for (h, w, kh, kw) in
-            [(5, 5, 5, 5), (20, 20, 5, 5), (9, 19, 3, 3), (69, 69, 29, 29), (8, 66, 3, 3), (7, 75, 4, 6)]
+            [(5, 5, 5, 5), (20, 20, 5, 5), (9, 19, 3, 3), (69, 69, 29, 29), (8, 66, 3, 3), (7, 75, 4, 6), (7, 75, 1, 6)]
         {
             let g = Geometry { h, w, kh, kw };
             let input: Vec<f32> = (0..h * w).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
@@ -154,8 +236,22 @@ mod tests {
             let mut scratch = vec![f32::NAN; g.scratch_len()];
             correlate_channel(g, &input, &kernel, 0.25, &mut out, &mut scratch);
             let want = direct(g, &input, &kernel, 0.25);
-            let worst = out.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-            assert!(worst < 1e-4 * (kh * kw) as f32, "{h}x{w} by {kh}x{kw}: off by {worst}");
+            // Every path on the padded input the dispatched one left in `scratch`.
+            let mut paths = vec![("dispatched", out.clone())];
+            let mut portable = vec![f32::NAN; out.len()];
+            strips::<false>(g, &scratch, &kernel, 0.25, &mut portable);
+            paths.push(("portable", portable));
+            #[cfg(target_arch = "x86_64")]
+            if super::super::avx2_fma() {
+                let mut fma = vec![f32::NAN; out.len()];
+                // SAFETY: the CPU has AVX2 and FMA.
+                unsafe { strips_avx2_fma(g, &scratch, &kernel, 0.25, &mut fma) };
+                paths.push(("avx2", fma));
+            }
+            for (path, got) in paths {
+                let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+                assert!(worst < 1e-4 * (kh * kw) as f32, "{path}: {h}x{w} by {kh}x{kw}: off by {worst}");
+            }
         }
     }
 }
