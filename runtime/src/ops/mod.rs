@@ -1,6 +1,6 @@
 //! Operators of our own that tract runs in place of its generic ones where they are faster
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
-//! ([`DepthwiseXCorr`]), stride-1 convolutions ([`PackedConv`], and [`PackedQConv`] for int8
+//! ([`DepthwiseXCorr`]), convolutions ([`PackedConv`], stride 1 or 2, and [`PackedQConv`] for int8
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some), max pooling
 //! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
 //! norms ([`LayerNormCore`]) and linear layers ([`ConstMatMul`]). Plans on disk keep tract's

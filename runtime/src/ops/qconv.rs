@@ -307,7 +307,7 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     if k0.iter().any(|&z| z != 0) {
         return Ok(None);
     }
-    let shape = ConvShape { ci, h, w, co, kh: ps.kernel_shape[0], kw: ps.kernel_shape[1], pad };
+    let shape = ConvShape { ci, h, w, co, kh: ps.kernel_shape[0], kw: ps.kernel_shape[1], pad, stride: 1 };
     let kernel = kernel.try_as_plain_ram()?;
     // SAFETY: the kernel's datum type is i8, possibly with quantisation parameters (checked).
     let kernel = unsafe { kernel.as_slice_unchecked::<i8>() };
@@ -444,10 +444,10 @@ mod tests {
     fn equals_the_integer_formula_with_zero_points_and_padding() {
         // 6 input channels (a partial group of four), 11 outputs (a partial block), padding 1;
         // padding reads real zeros (the input zero point 7).
-        check(ConvShape { ci: 6, h: 9, w: 37, co: 11, kh: 3, kw: 3, pad: [1, 1, 1, 1] });
+        check(ConvShape { ci: 6, h: 9, w: 37, co: 11, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 });
         // Two 64-channel steps (the second partial), a 32-output block and a partial one, a
         // 5x5 kernel without padding, wide rows that end inside a block.
-        check(ConvShape { ci: 70, h: 14, w: 19, co: 40, kh: 5, kw: 5, pad: [0; 4] });
-        check(ConvShape { ci: 128, h: 6, w: 6, co: 32, kh: 1, kw: 1, pad: [0, 2, 1, 0] });
+        check(ConvShape { ci: 70, h: 14, w: 19, co: 40, kh: 5, kw: 5, pad: [0; 4], stride: 1 });
+        check(ConvShape { ci: 128, h: 6, w: 6, co: 32, kh: 1, kw: 1, pad: [0, 2, 1, 0], stride: 1 });
     }
 }
