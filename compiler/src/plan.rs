@@ -71,9 +71,9 @@ fn compile_with(
     Ok(CompiledPlan { manifest, template, search })
 }
 
-/// tract knobs a plan is optimised under. Layer 1, a space-to-depth 6x6 convolution with 12
-/// input channels and a 139-wide output, would become tract's direct spatial convolution, which
-/// measured 1.6-1.9x slower here than im2col and a matrix product (docs/performance.md).
+/// tract knobs a plan is optimised under. tract's direct spatial convolution measured 1.6-1.9x
+/// slower here than im2col and a matrix product for layer 1 (docs/performance.md); the runtime
+/// runs layer 1 as its own `PackedConv`, and the knob keeps tract's fallback on the faster path.
 pub(crate) fn optimizer_knobs() -> std::collections::BTreeMap<String, String> {
     [("TRACT_DISABLE_DIRECT_SPATIAL".to_string(), "true".to_string())].into()
 }

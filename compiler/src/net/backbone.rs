@@ -1,6 +1,6 @@
 //! The AlexNet backbone with BatchNorm (`backbone.layer1..5`), BatchNorm folded into the convs.
 
-use super::layers::{conv_bn, conv_bn_space_to_depth, ConvSpec};
+use super::layers::{conv_bn, ConvSpec};
 use crate::onnx::{ConvOpts, Graph, Value};
 use crate::weights::Scope;
 use crate::Result;
@@ -8,10 +8,10 @@ use crate::Result;
 /// Channel counts of the five layers.
 pub const CHANNELS: [usize; 5] = [96, 256, 384, 384, 256];
 
-/// Run layers 1..5 on `input` (BGR, 0..255, `hw`x`hw`); the outputs are named
-/// `{prefix}1`..`{prefix}5`. Layer 1 (11x11, stride 2, 3 channels) runs as a 6x6 stride-1
-/// convolution on the space-to-depth input: the same function, on tract's matrix-product path.
-pub(crate) fn backbone(g: &mut Graph, w: &Scope, input: &Value, hw: usize, prefix: &str) -> Result<Vec<Value>> {
+/// Run layers 1..5 on `input` (BGR, 0..255); the outputs are named `{prefix}1`..`{prefix}5`.
+/// Layer 1 is the official 11x11 stride-2 convolution (the runtime's `PackedConv` runs it on
+/// the input's four phases, which is the space-to-depth form with no padding taps).
+pub(crate) fn backbone(g: &mut Graph, w: &Scope, input: &Value, prefix: &str) -> Result<Vec<Value>> {
     // (kernel, stride, max-pool after, ReLU, random-init activation scale)
     let layers = [
         (11, 2, true, true, 200.0),
@@ -37,11 +37,7 @@ pub(crate) fn backbone(g: &mut Graph, w: &Scope, input: &Value, hw: usize, prefi
             gain: 1.0,
         };
         let conv_name = if !pool && !relu { out.clone() } else { format!("{name}.conv") };
-        x = if i == 0 {
-            conv_bn_space_to_depth(g, &conv_name, &x, hw, &spec, &l.pp(1), scale)?
-        } else {
-            conv_bn(g, &conv_name, &x, &spec, &l.pp(1), scale)?
-        };
+        x = conv_bn(g, &conv_name, &x, &spec, &l.pp(1), scale)?;
         if pool {
             x = g.max_pool(&format!("{name}.maxpool"), &x, 3, 2)?;
         }

@@ -70,63 +70,13 @@ pub(crate) fn conv_bn(
     bn: &Scope,
     act_scale: f32,
 ) -> Result<Value> {
-    let (w, b) = folded_conv_bn(g, spec, bn, act_scale, |w| w)?;
+    let (w, b) = folded_conv_bn(g, spec, bn, act_scale)?;
     g.conv(name, x, &w, Some(&b), spec.opts)
 }
 
-/// A stride-2 `bn(conv(x))` on an `hw`x`hw` input, computed as a stride-1 convolution on the
-/// space-to-depth rearrangement of `x` (each 2x2 block of pixels becomes 4 channels, the kernel
-/// `ceil(k/2)` wide with zeros where the original has no tap). The same sums, in another order:
-/// tract runs it as a matrix product instead of its direct convolution for few input channels.
-pub(crate) fn conv_bn_space_to_depth(
-    g: &mut Graph,
-    name: &str,
-    x: &Value,
-    hw: usize,
-    spec: &ConvSpec,
-    bn: &Scope,
-    act_scale: f32,
-) -> Result<Value> {
-    assert!(spec.opts.stride == 2 && spec.opts.pad == 0 && spec.opts.group == 1, "{name}: plain stride-2 conv only");
-    let (cin, k, half) = (spec.cin, spec.k, hw.div_ceil(2));
-    let (w, b) = folded_conv_bn(g, spec, bn, act_scale, |w| space_to_depth_kernel(&w, cin, k))?;
-    let x = if hw % 2 == 1 { g.pad_end(&format!("{name}.pad"), x, &[0, 0, 1, 1])? } else { x.clone() };
-    let (c, h) = (cin as i64, half as i64);
-    let x = g.reshape(&format!("{name}.blocks"), &x, &[1, c, h, 2, h, 2])?;
-    let x = g.transpose(&format!("{name}.s2d"), &x, &[0, 1, 3, 5, 2, 4])?;
-    let x = g.reshape(&format!("{name}.s2d_flat"), &x, &[1, 4 * c, h, h])?;
-    g.conv(name, &x, &w, Some(&b), ConvOpts::default())
-}
-
-/// `w` [cout, cin, k, k] of a stride-2 convolution as the kernel [cout, 4 cin, ceil(k/2),
-/// ceil(k/2)] of the equivalent stride-1 convolution on space-to-depth input (channel
-/// `4c + 2dy + dx` holds pixel offset (dy, dx) of channel `c`).
-fn space_to_depth_kernel(w: &Tensor, cin: usize, k: usize) -> Tensor {
-    let cout = w.shape[0];
-    let kh = k.div_ceil(2);
-    let mut out = vec![0f32; cout * 4 * cin * kh * kh];
-    for o in 0..cout {
-        for c in 0..cin {
-            for y in 0..k {
-                for x in 0..k {
-                    let ch = 4 * c + 2 * (y % 2) + x % 2;
-                    out[((o * 4 * cin + ch) * kh + y / 2) * kh + x / 2] = w.data[((o * cin + c) * k + y) * k + x];
-                }
-            }
-        }
-    }
-    Tensor::new([cout, 4 * cin, kh, kh], out)
-}
-
-/// The convolution's weights and bias with the BatchNorm folded in (f64 arithmetic), the weight
-/// passed through `layout`, as initializers named `<conv key>+<bn prefix>`.
-fn folded_conv_bn(
-    g: &mut Graph,
-    spec: &ConvSpec,
-    bn: &Scope,
-    act_scale: f32,
-    layout: impl FnOnce(Tensor) -> Tensor,
-) -> Result<(Value, Value)> {
+/// The convolution's weights and bias with the BatchNorm folded in (f64 arithmetic), as
+/// initializers named `<conv key>+<bn prefix>`.
+fn folded_conv_bn(g: &mut Graph, spec: &ConvSpec, bn: &Scope, act_scale: f32) -> Result<(Value, Value)> {
     let c = spec.cout;
     let gamma = bn.get("weight", &[c], Init::Uniform { lo: 0.8, hi: 1.2 })?;
     let beta = bn.get("bias", &[c], Init::Normal { mean: 0.0, std: 0.1 })?;
@@ -146,7 +96,7 @@ fn folded_conv_bn(
         bias[o] = ((b0 - mean.data[o] as f64) * inv + beta.data[o] as f64) as f32;
     }
     let folded = format!("+{}", bn.key("").trim_end_matches('.'));
-    let w = g.constant(&(spec.conv.key("weight") + &folded), &layout(w))?;
+    let w = g.constant(&(spec.conv.key("weight") + &folded), &w)?;
     let b = g.constant(&(spec.conv.key("bias") + &folded), &Tensor::new([c], bias))?;
     Ok((w, b))
 }

@@ -97,7 +97,7 @@ pub fn template_graph(weights: &Weights) -> Result<Graph> {
     let w = weights.root();
     let mut g = Graph::new("prl_track_template");
     let z = g.input(TEMPLATE_INPUT.name, TEMPLATE_INPUT.shape)?;
-    let feats = backbone::backbone(&mut g, &w.pp("backbone"), &z, TEMPLATE_INPUT.shape[3], "zf")?;
+    let feats = backbone::backbone(&mut g, &w.pp("backbone"), &z, "zf")?;
     for (f, spec) in feats.iter().zip(TEMPLATE_OUTPUTS) {
         g.output(f, spec.shape)?;
     }
@@ -116,7 +116,7 @@ pub fn search_variant(weights: &Weights, variant: Variant) -> Result<Graph> {
     let mut g = Graph::new("prl_track_search");
     let x = g.input(SEARCH_INPUT.name, SEARCH_INPUT.shape)?;
     let zf = TEMPLATE_OUTPUTS.iter().map(|s| g.input(s.name, s.shape)).collect::<Result<Vec<_>>>()?;
-    let xf = backbone::backbone(&mut g, &w.pp("backbone"), &x, SEARCH_INPUT.shape[3], "xf")?;
+    let xf = backbone::backbone(&mut g, &w.pp("backbone"), &x, "xf")?;
     // The five correlations as the official code writes them: depthwise convolutions whose
     // kernels are the template features (tract runs them as `prl_runtime::DepthwiseXCorr`).
     let s = (0..5)

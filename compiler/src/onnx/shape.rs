@@ -29,13 +29,6 @@ impl Graph {
         let idx = self.constant_i64(&format!("{name}.indices"), &[indices.len()], indices)?;
         self.node("Gather", name, &[x, &idx], &[("axis", Attr::Int(axis))])
     }
-    /// `Pad` a 4-D `x` with zeros after the end of each axis, by `after` (N, C, H, W).
-    pub fn pad_end(&mut self, name: &str, x: &Value, after: &[i64; 4]) -> Result<Value> {
-        let mut pads = vec![0i64; 4];
-        pads.extend_from_slice(after);
-        let p = self.constant_i64(&format!("{name}.pads"), &[8], &pads)?;
-        self.node("Pad", name, &[x, &p], &[("mode", Attr::Str("constant".into()))])
-    }
     /// `Gather` along `axis` with constant `indices` of shape `shape` (any rank).
     pub fn gather_nd_indices(
         &mut self,

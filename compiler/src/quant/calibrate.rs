@@ -61,7 +61,9 @@ pub(crate) fn observe(
     names.sort();
     names.dedup();
     let inputs = net::search_inputs();
-    // Graph inputs read directly by a layer would be observed in the template features.
+    // Graph inputs read directly by a layer are observed where they come from: the search crop
+    // (backbone layer 1 reads it), the template features.
+    let crop_read = names.contains(&inputs[0].name);
     let fed: Vec<usize> = (1..inputs.len()).filter(|&i| names.contains(&inputs[i].name)).collect();
     names.retain(|n| !inputs.iter().any(|i| i.name == *n));
     if names.is_empty() {
@@ -83,6 +85,10 @@ pub(crate) fn observe(
         }
         for x in crops {
             progress("calibrating", done, calib.searches.len());
+            if crop_read {
+                observers.entry(inputs[0].name.to_string()).or_default().observe(&x.data);
+                shapes.insert(inputs[0].name.to_string(), x.shape.clone());
+            }
             let args: Vec<&Tensor> = std::iter::once(x).chain(&f).collect();
             let outs = search.run(&args)?;
             for (name, out) in search.output_names().iter().zip(outs) {
