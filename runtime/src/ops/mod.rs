@@ -3,10 +3,12 @@
 //! ([`DepthwiseXCorr`]), convolutions ([`PackedConv`], stride 1 or 2, and [`PackedQConv`] for int8
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some), max pooling
 //! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
-//! norms ([`LayerNormCore`]) and linear layers ([`ConstMatMul`]). Plans on disk keep tract's
+//! norms ([`LayerNormCore`]), linear layers ([`ConstMatMul`]) and broadcast products and sums
+//! ([`BroadcastBinary`]). Plans on disk keep tract's
 //! standard operators, so the choice is made on the machine that runs the plan.
 
 mod attention;
+mod binary;
 mod conv;
 mod conv_kernel;
 mod matmul;
@@ -18,6 +20,7 @@ mod xcorr;
 mod xcorr_kernel;
 
 pub use attention::{AttnMix, AttnScores, RowSoftmax};
+pub use binary::{Binary, BroadcastBinary};
 pub use conv::{ConvShape, PackedConv};
 pub use matmul::ConstMatMul;
 pub use norm::LayerNormCore;
@@ -44,6 +47,8 @@ pub struct Accelerated {
     pub norms: usize,
     /// f32 products with a constant operand made [`ConstMatMul`].
     pub matmuls: usize,
+    /// Broadcast f32 products and sums made [`BroadcastBinary`].
+    pub broadcasts: usize,
 }
 
 /// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
@@ -71,6 +76,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         } else if let Some((op, x)) = matmul::const_matmul(model, node)? {
             done.matmuls += 1;
             (Box::new(op), tvec![x])
+        } else if let Some(op) = binary::broadcast_binary(model, node)? {
+            done.broadcasts += 1;
+            (Box::new(op), node.inputs.iter().copied().collect())
         } else if xcorr::matches(model, node)? {
             done.correlations += 1;
             (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())

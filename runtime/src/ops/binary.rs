@@ -1,0 +1,187 @@
+//! f32 products and sums where one operand is broadcast ([`BroadcastBinary`]): the regulators'
+//! gates (`[1,384,21,21] · [1,1,21,21]`) and squeeze-excitation scalings (`[1,192,11,11] ·
+//! [1,192,1,1]`).
+//!
+//! tract's broadcasting binary operators walked these element by element (0.4 GFLOP/s, about
+//! 0.8 ms a gate here). Here the axes are merged into runs where the small operand is either
+//! read along with the large one or held, so the inner loop is a plain vectorised zip or a
+//! scalar times a row.
+
+use tract_nnef::internal::*;
+use tract_nnef::tract_core::ops::binary::TypedBinOp;
+use tract_nnef::tract_core::ops::math::{Add, Mul};
+
+/// Which operation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Binary {
+    /// `a · b`
+    Mul,
+    /// `a + b`
+    Add,
+}
+
+/// `out = full ∘ small` (`∘` commutative) where `small` has the rank of `full` and each of its
+/// axes is either `full`'s or 1.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BroadcastBinary {
+    /// The operation.
+    pub op: Binary,
+    /// Which input has the output's shape (0 or 1).
+    pub full: usize,
+}
+
+impl Op for BroadcastBinary {
+    fn name(&self) -> StaticName {
+        "BroadcastBinary".into()
+    }
+
+    fn info(&self) -> TractResult<Vec<String>> {
+        Ok(vec![format!("{:?}", self.op)])
+    }
+
+    op_as_typed_op!();
+}
+
+/// The shapes as runs `(length, small operand's stride)` of merged axes: stride 0 where the
+/// small operand is held, its row-major stride where it is read along.
+fn runs(full: &[usize], small: &[usize]) -> Vec<(usize, usize)> {
+    let mut runs: Vec<(usize, bool)> = vec![];
+    for (&f, &s) in full.iter().zip(small) {
+        if f == 1 {
+            continue;
+        }
+        let read = s == f;
+        match runs.last_mut() {
+            Some((len, r)) if *r == read => *len *= f,
+            _ => runs.push((f, read)),
+        }
+    }
+    let mut stride = 1;
+    let mut out: Vec<(usize, usize)> = runs
+        .iter()
+        .rev()
+        .map(|&(len, read)| {
+            let s = if read { stride } else { 0 };
+            if read {
+                stride *= len;
+            }
+            (len, s)
+        })
+        .collect();
+    out.reverse();
+    out
+}
+
+impl EvalOp for BroadcastBinary {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let (a, b) = args_2!(inputs);
+        let (full, small) = if self.full == 0 { (a, b) } else { (b, a) };
+        ensure!(
+            full.rank() == small.rank() && full.shape().iter().zip(small.shape()).all(|(&f, &s)| s == f || s == 1),
+            "BroadcastBinary: {:?} and {:?}",
+            full.shape(),
+            small.shape()
+        );
+        let runs = runs(full.shape(), small.shape());
+        let small = small.try_as_plain_ram()?;
+        let small = small.as_slice::<f32>()?;
+        let mut out = full.into_tensor();
+        {
+            let mut plain = out.try_as_plain_ram_mut()?;
+            let data = plain.as_slice_mut::<f32>()?;
+            let (inner, inner_stride) = runs.last().copied().unwrap_or((1, 0));
+            let outer = &runs[..runs.len().saturating_sub(1)];
+            for (row, chunk) in data.chunks_exact_mut(inner).enumerate() {
+                // The small operand's offset for this row (mixed radix over the outer runs).
+                let (mut rest, mut at) = (row, 0);
+                for &(len, stride) in outer.iter().rev() {
+                    at += (rest % len) * stride;
+                    rest /= len;
+                }
+                match (self.op, inner_stride) {
+                    (Binary::Mul, 0) => chunk.iter_mut().for_each(|v| *v *= small[at]),
+                    (Binary::Add, 0) => chunk.iter_mut().for_each(|v| *v += small[at]),
+                    (Binary::Mul, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v *= s),
+                    (Binary::Add, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v += s),
+                }
+            }
+        }
+        Ok(tvec!(out.into_tvalue()))
+    }
+}
+
+impl TypedOp for BroadcastBinary {
+    fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        Ok(tvec!(inputs[self.full].without_value()))
+    }
+    as_op!();
+}
+
+/// The [`BroadcastBinary`] for an f32 `Mul` or `Add` of two non-constant inputs of one rank
+/// where one is broadcast against the other (at least 4096 outputs).
+pub(crate) fn broadcast_binary(model: &TypedModel, node: &TypedNode) -> TractResult<Option<BroadcastBinary>> {
+    let Some(bin) = node.op_as::<TypedBinOp>() else { return Ok(None) };
+    let op = if bin.0.is::<Mul>() {
+        Binary::Mul
+    } else if bin.0.is::<Add>() {
+        Binary::Add
+    } else {
+        return Ok(None);
+    };
+    let facts = model.node_input_facts(node.id)?;
+    if facts.len() != 2 || facts.iter().any(|f| f.datum_type != f32::datum_type() || f.konst.is_some()) {
+        return Ok(None);
+    }
+    let (Some(a), Some(b)) = (facts[0].shape.as_concrete(), facts[1].shape.as_concrete()) else { return Ok(None) };
+    if a.len() != b.len() || a == b {
+        return Ok(None);
+    }
+    let covers = |f: &[usize], s: &[usize]| f.iter().zip(s).all(|(&f, &s)| s == f || s == 1);
+    let full = if covers(a, b) {
+        0
+    } else if covers(b, a) {
+        1
+    } else {
+        return Ok(None);
+    };
+    let outputs: usize = [a, b][full].iter().product();
+    Ok((outputs >= 4096).then_some(BroadcastBinary { op, full }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn broadcasts_like_tract() {
+        // The gate (small operand read along the plane, held over channels), the SE scaling
+        // (read along channels, held over the plane), a mixed one, and the small one first.
+        for (a, b) in [
+            (vec![1, 6, 5, 7], vec![1, 1, 5, 7]),
+            (vec![1, 6, 5, 7], vec![1, 6, 1, 1]),
+            (vec![2, 6, 5, 7], vec![2, 1, 5, 1]),
+            (vec![1, 1, 5, 7], vec![3, 6, 5, 7]),
+        ] {
+            let values = |s: &[usize], k: usize| {
+                let v: Vec<f32> = (0..s.iter().product()).map(|i| ((i * k % 13) as f32) - 6.0).collect();
+                Tensor::from_shape(s, &v).unwrap()
+            };
+            for (op, tract_op) in [
+                (Binary::Mul, tract_nnef::tract_core::ops::math::mul()),
+                (Binary::Add, tract_nnef::tract_core::ops::math::add()),
+            ] {
+                let (x, y) = (values(&a, 7), values(&b, 5));
+                let inputs = tvec![x.clone().into_tvalue(), y.clone().into_tvalue()];
+                let want = tract_op.eval(&EvalContext::out_of_plan(), inputs).unwrap().remove(0);
+                let full = if a.iter().product::<usize>() >= b.iter().product() { 0 } else { 1 };
+                let ours = BroadcastBinary { op, full };
+                let got = ours.eval(&EvalContext::out_of_plan(), tvec![x.into_tvalue(), y.into_tvalue()]).unwrap();
+                assert_eq!(got[0].shape(), want.shape());
+                let (got, want) = (got[0].try_as_plain_ram().unwrap(), want.try_as_plain_ram().unwrap());
+                assert_eq!(got.as_slice::<f32>().unwrap(), want.as_slice::<f32>().unwrap(), "{op:?} {a:?} {b:?}");
+            }
+        }
+    }
+}
