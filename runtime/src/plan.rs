@@ -214,15 +214,20 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
     let path = dir.join(&info.file);
     let bytes = std::fs::read(&path).map_err(|e| Error::Io { path: path.clone(), err: e })?;
     let bad = |msg: String| Error::Plan { path: path.clone(), msg };
-    let digest: String = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+    let tract_err = |e: TractError| bad(format!("{e:#}").replace('\n', " "));
+    // The digest is computed while the graph is parsed; a mismatch is reported first.
+    let (digest, model) = std::thread::scope(|s| {
+        let digest = s.spawn(|| Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect::<String>());
+        let model = nnef().model_for_read(&mut &*bytes);
+        (digest.join().expect("hashing does not panic"), model)
+    });
     if digest != info.sha256 {
         return Err(bad(format!(
             "sha256 {digest} does not match the manifest's {} (corrupt or replaced file)",
             info.sha256
         )));
     }
-    let tract_err = |e: TractError| bad(format!("{e:#}").replace('\n', " "));
-    let model = nnef().model_for_read(&mut &*bytes).map_err(tract_err)?;
+    let model = model.map_err(tract_err)?;
     if model.inputs.len() != info.inputs.len() || model.outputs.len() != info.outputs.len() {
         return Err(bad(format!(
             "graph has {} inputs and {} outputs, the manifest says {} and {}",
@@ -243,7 +248,8 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
     }
     let model = knobs
         .enter(|| {
-            // Declutter first: constants reach the convolutions' weight and bias inputs.
+            // Declutter first: constants reach the convolutions' weight and bias inputs (the
+            // graph read from NNEF is not in the form the runtime's operators match).
             let mut model = model.into_decluttered()?;
             crate::accelerate(&mut model)?;
             model.optimize()?; // codegen only: the model is decluttered already

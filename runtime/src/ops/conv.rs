@@ -98,13 +98,17 @@ impl PackedConv {
         ensure!(bias.len() == 1 || bias.len() == shape.co, "PackedConv: {} bias values for {shape:?}", bias.len());
         // Taps whose weight is zero for every output (the padding of a space-to-depth kernel)
         // are left out: with finite inputs they add exact zeros.
-        let live: Vec<usize> = (0..taps).filter(|&t| weight.iter().skip(t).step_by(taps).any(|&v| v != 0.0)).collect();
+        let mut nonzero = vec![false; taps];
+        for w in weight.chunks_exact(taps) {
+            nonzero.iter_mut().zip(w).for_each(|(n, &v)| *n |= v != 0.0);
+        }
+        let live: Vec<usize> = (0..taps).filter(|&t| nonzero[t]).collect();
         let blocks = shape.co.div_ceil(ROWS);
-        let mut packed = vec![0f32; blocks * live.len() * ROWS];
-        for (o, w) in weight.chunks_exact(taps).enumerate() {
-            let block = &mut packed[(o / ROWS) * live.len() * ROWS..];
-            for (i, &t) in live.iter().enumerate() {
-                block[i * ROWS + o % ROWS] = w[t];
+        // Written in order, block by block: the block's rows are read as 8 streams.
+        let mut packed = Vec::with_capacity(blocks * live.len() * ROWS);
+        for rows in weight.chunks(ROWS * taps) {
+            for &t in &live {
+                packed.extend((0..ROWS).map(|r| rows.get(r * taps + t).copied().unwrap_or(0.0)));
             }
         }
         let bias: Vec<f32> =
