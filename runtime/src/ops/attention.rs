@@ -11,7 +11,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::einsum::EinSum;
 use tract_nnef::tract_core::ops::nn::{Softmax, SoftmaxKind};
 
-use super::par_chunks;
+use super::{output_tensor, par_chunks};
 
 /// `scores[a,m,b,n] = Σ_k q[0,a,m,k]·keys[b,a,n,k]` (`camk,bank->ambn`).
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -49,20 +49,22 @@ impl EvalOp for AttnScores {
         let row = b * n;
         // Key rows padded to whole vectors of 16.
         let ldk = row.next_multiple_of(NR);
-        let mut out = vec![0f32; heads * m * row];
-        par_chunks(&mut out, m * row, |a, out| {
-            // This head's keys transposed: [k][(b, n)], so that the scores are `q · kt`.
-            let mut kt = vec![0f32; p * ldk];
-            for bi in 0..b {
-                for j in 0..n {
-                    for k in 0..p {
-                        kt[k * ldk + bi * n + j] = ks[((bi * heads + a) * n + j) * p + k];
+        let out = output_tensor(&[heads, m, b, n], |out: &mut [f32]| {
+            par_chunks(out, m * row, |a, out| {
+                // This head's keys transposed: [k][(b, n)], so that the scores are `q · kt`.
+                let mut kt = vec![0f32; p * ldk];
+                for bi in 0..b {
+                    for j in 0..n {
+                        for k in 0..p {
+                            kt[k * ldk + bi * n + j] = ks[((bi * heads + a) * n + j) * p + k];
+                        }
                     }
                 }
-            }
-            gemm(out, row, &qs[a * m * p..(a + 1) * m * p], p, &kt, ldk);
-        });
-        Ok(tvec!(tract_ndarray::Array4::from_shape_vec((heads, m, b, n), out)?.into_tensor().into_tvalue()))
+                gemm(out, row, &qs[a * m * p..(a + 1) * m * p], p, &kt, ldk);
+            });
+            Ok(())
+        })?;
+        Ok(tvec!(out.into_tvalue()))
     }
 }
 
@@ -100,14 +102,16 @@ impl EvalOp for AttnMix {
             }
             gemm(out, n, &ps[a * m * rows..(a + 1) * m * rows], rows, &va, ld);
         });
-        let mut out = vec![0f32; m * heads * n];
-        for a in 0..heads {
-            for mi in 0..m {
-                out[(mi * heads + a) * n..(mi * heads + a + 1) * n]
-                    .copy_from_slice(&per_head[(a * m + mi) * n..(a * m + mi + 1) * n]);
+        let out = output_tensor(&[m, heads, n], |out: &mut [f32]| {
+            for a in 0..heads {
+                for mi in 0..m {
+                    out[(mi * heads + a) * n..(mi * heads + a + 1) * n]
+                        .copy_from_slice(&per_head[(a * m + mi) * n..(a * m + mi + 1) * n]);
+                }
             }
-        }
-        Ok(tvec!(tract_ndarray::Array3::from_shape_vec((m, heads, n), out)?.into_tensor().into_tvalue()))
+            Ok(())
+        })?;
+        Ok(tvec!(out.into_tvalue()))
     }
 }
 
@@ -152,10 +156,11 @@ fn gemm_generic<const FUSED: bool>(dst: &mut [f32], n: usize, a: &[f32], kl: usi
         let mr = MR.min(m - i);
         // Rows past the last are computed again from the last (and not stored).
         let rows: [&[f32]; MR] = std::array::from_fn(|r| &a[(i + r.min(mr - 1)) * kl..][..kl]);
+        assert!(b.len() >= kl * ldb && n <= ldb && ldb % NR == 0, "b holds kl rows of whole vectors");
         for j0 in (0..n).step_by(NR) {
             let mut acc = [[0f32; NR]; MR];
-            for (k, brow) in b.chunks_exact(ldb).take(kl).enumerate() {
-                let brow: &[f32; NR] = brow[j0..j0 + NR].try_into().expect("rows of whole vectors");
+            for k in 0..kl {
+                let brow: &[f32; NR] = b[k * ldb + j0..][..NR].try_into().expect("16 values");
                 for (acc, row) in acc.iter_mut().zip(&rows) {
                     let c = row[k];
                     for (x, &y) in acc.iter_mut().zip(brow) {

@@ -15,7 +15,7 @@ use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
-use super::{all_ones, pads_2d, par_chunks, same_bits};
+use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits};
 
 /// Shape of one convolution: input `[N, ci, h, w]`, padding, kernel `kh` x `kw`, `co` outputs.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
@@ -154,33 +154,34 @@ impl EvalOp for PackedConv {
         let (hq, wq) = s.phase();
         let plane = oh * ow;
         let taps = self.layout.taps.len();
-        let mut out = vec![0f32; n * s.co * plane];
         let phases = s.stride * s.stride;
         let mut padded = vec![0f32; ci * phases * hq * wq + MAX_PX + wq];
-        for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
-            for (c, src) in src.chunks_exact(h * w).enumerate() {
-                for (y, row) in src.chunks_exact(w).enumerate() {
-                    let yp = y + s.pad[0];
-                    if s.stride == 1 {
-                        let at = (c * hq + yp) * wq + s.pad[1];
-                        padded[at..at + w].copy_from_slice(row);
-                        continue;
-                    }
-                    for (x, &v) in row.iter().enumerate() {
-                        let xp = x + s.pad[1];
-                        let phase = (c * s.stride + yp % s.stride) * s.stride + xp % s.stride;
-                        padded[(phase * hq + yp / s.stride) * wq + xp / s.stride] = v;
+        let out = output_tensor(&[n, s.co, oh, ow], |out: &mut [f32]| {
+            for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
+                for (c, src) in src.chunks_exact(h * w).enumerate() {
+                    for (y, row) in src.chunks_exact(w).enumerate() {
+                        let yp = y + s.pad[0];
+                        if s.stride == 1 {
+                            let at = (c * hq + yp) * wq + s.pad[1];
+                            padded[at..at + w].copy_from_slice(row);
+                            continue;
+                        }
+                        for (x, &v) in row.iter().enumerate() {
+                            let xp = x + s.pad[1];
+                            let phase = (c * s.stride + yp % s.stride) * s.stride + xp % s.stride;
+                            padded[(phase * hq + yp / s.stride) * wq + xp / s.stride] = v;
+                        }
                     }
                 }
+                par_chunks(dst, ROWS * plane, |b, out| {
+                    let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
+                    let bias: &[f32; ROWS] = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
+                    channel_block(&self.layout, &padded, weights, bias, out);
+                });
             }
-            par_chunks(dst, ROWS * plane, |b, out| {
-                let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
-                let bias: &[f32; ROWS] = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
-                channel_block(&self.layout, &padded, weights, bias, out);
-            });
-        }
-        let out = tract_ndarray::Array4::from_shape_vec((n, s.co, oh, ow), out)?;
-        Ok(tvec!(out.into_tensor().into_tvalue()))
+            Ok(())
+        })?;
+        Ok(tvec!(out.into_tvalue()))
     }
 }
 

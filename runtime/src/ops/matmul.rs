@@ -13,7 +13,7 @@ use std::sync::Arc;
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::einsum::EinSum;
 
-use super::{par_for, SyncPtr};
+use super::{output_tensor, par_for, SyncPtr};
 
 /// Output features per packed panel.
 const PANEL: usize = 32;
@@ -71,23 +71,25 @@ impl EvalOp for ConstMatMul {
                 *v = x[j * n.input + i * k.input];
             }
         }
-        let mut out = vec![0f32; self.output_shape.iter().product()];
-        let dst = SyncPtr(out.as_mut_ptr());
-        par_for(m.len.div_ceil(PANEL), |p| {
-            let panel = &self.panels[p * k.len * PANEL..(p + 1) * k.len * PANEL];
-            let features = PANEL.min(m.len - p * PANEL);
-            for j0 in (0..n.len).step_by(ROWS) {
-                let tile = tile(panel, &rows, k.len, j0, ROWS.min(n.len - j0));
-                for (r, acc) in tile.iter().enumerate().take(n.len - j0) {
-                    for (f, &v) in acc.iter().enumerate().take(features) {
-                        let at = (p * PANEL + f) * m.output + (j0 + r) * n.output;
-                        // SAFETY: `at` is within the output; panels write disjoint features.
-                        unsafe { *dst.at(at) = v };
+        let out = output_tensor(&self.output_shape, |out: &mut [f32]| {
+            let dst = SyncPtr(out.as_mut_ptr());
+            par_for(m.len.div_ceil(PANEL), |p| {
+                let panel = &self.panels[p * k.len * PANEL..(p + 1) * k.len * PANEL];
+                let features = PANEL.min(m.len - p * PANEL);
+                for j0 in (0..n.len).step_by(ROWS) {
+                    let tile = tile(panel, &rows, k.len, j0, ROWS.min(n.len - j0));
+                    for (r, acc) in tile.iter().enumerate().take(n.len - j0) {
+                        for (f, &v) in acc.iter().enumerate().take(features) {
+                            let at = (p * PANEL + f) * m.output + (j0 + r) * n.output;
+                            // SAFETY: `at` is within the output; panels write disjoint features.
+                            unsafe { *dst.at(at) = v };
+                        }
                     }
                 }
-            }
-        });
-        Ok(tvec!(Tensor::from_shape(&self.output_shape, &out)?.into_tvalue()))
+            });
+            Ok(())
+        })?;
+        Ok(tvec!(out.into_tvalue()))
     }
 }
 

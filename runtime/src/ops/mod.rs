@@ -94,6 +94,18 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
     Ok(done)
 }
 
+/// A zero-filled tensor of `shape` that `fill` writes an operator's output into. (tract's
+/// conversions from a `Vec` or an ndarray copy the data into a tensor of their own: one more
+/// pass over every output.)
+fn output_tensor<T: Datum>(shape: &[usize], fill: impl FnOnce(&mut [T]) -> TractResult<()>) -> TractResult<Tensor> {
+    let mut t = Tensor::zero_dt(T::datum_type(), shape)?;
+    {
+        let mut plain = t.try_as_plain_ram_mut()?;
+        fill(plain.as_slice_mut::<T>()?)?;
+    }
+    Ok(t)
+}
+
 /// Whether a pooling spec's strides or dilations (absent: 1) are all 1.
 fn all_ones(v: &Option<TVec<usize>>) -> bool {
     v.as_ref().is_none_or(|v| v.iter().all(|&s| s == 1))

@@ -6,7 +6,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::MaxPool;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::{all_ones, no_padding, par_chunks};
+use super::{all_ones, no_padding, output_tensor, par_chunks};
 
 /// `out[n,c,y,x] = max_{i<k, j<k} input[n,c,y·s+i,x·s+j]`: a `k` x `k` window, stride `s`, no
 /// padding, NCHW, f32 or u8 (quantised u8 too: a positive scale keeps the order).
@@ -42,12 +42,12 @@ impl EvalOp for ChannelMaxPool {
         let dt = input.datum_type();
         let plain = input.try_as_plain_ram()?;
         let mut out = if dt == f32::datum_type() {
-            self.pool(plain.as_slice::<f32>()?, [n, c, h, w], f32::NEG_INFINITY, f32::max)?.into_tensor()
+            self.pool(plain.as_slice::<f32>()?, [n, c, h, w], f32::NEG_INFINITY, f32::max)?
         } else {
             ensure!(dt.unquantized() == u8::datum_type(), "ChannelMaxPool: input is {dt:?}");
             // SAFETY: the storage is u8 (plain or quantised), checked above.
             let data = unsafe { plain.as_slice_unchecked::<u8>() };
-            self.pool(data, [n, c, h, w], 0u8, u8::max)?.into_tensor()
+            self.pool(data, [n, c, h, w], 0u8, u8::max)?
         };
         // SAFETY: same storage type; the input's quantisation parameters carry over.
         unsafe { out.set_datum_type(dt) };
@@ -56,16 +56,30 @@ impl EvalOp for ChannelMaxPool {
 }
 
 impl ChannelMaxPool {
-    fn pool<T: Copy + Send + Sync + Default>(
+    fn pool<T: Datum + Copy>(
         &self,
         input: &[T],
         [n, c, h, w]: [usize; 4],
         lowest: T,
         max: impl Fn(T, T) -> T + Copy + Sync,
-    ) -> TractResult<tract_ndarray::Array4<T>> {
+    ) -> TractResult<Tensor> {
         let (oh, ow) = (self.out(h), self.out(w));
-        let mut out = vec![T::default(); n * c * oh * ow];
-        par_chunks(&mut out, oh * ow, |plane, dst| {
+        output_tensor(&[n, c, oh, ow], |out: &mut [T]| {
+            self.pool_into(input, [h, w], lowest, max, out);
+            Ok(())
+        })
+    }
+
+    fn pool_into<T: Datum + Copy>(
+        &self,
+        input: &[T],
+        [h, w]: [usize; 2],
+        lowest: T,
+        max: impl Fn(T, T) -> T + Copy + Sync,
+        out: &mut [T],
+    ) {
+        let (oh, ow) = (self.out(h), self.out(w));
+        par_chunks(out, oh * ow, |plane, dst| {
             let src = &input[plane * h * w..(plane + 1) * h * w];
             // The window's rows reduced first (element-wise, vectorised), then its columns.
             let mut cols = vec![lowest; w];
@@ -82,7 +96,6 @@ impl ChannelMaxPool {
                 }
             }
         });
-        Ok(tract_ndarray::Array4::from_shape_vec((n, c, oh, ow), out)?)
     }
 }
 

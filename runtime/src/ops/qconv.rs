@@ -17,7 +17,7 @@ use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::qconv_amx::{self, AmxWeights};
-use super::{all_ones, pads_2d, par_chunks, same_bits, ConvShape};
+use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits, ConvShape};
 
 /// Output channels per tile.
 const ROWS: usize = 8;
@@ -91,18 +91,19 @@ impl EvalOp for PackedQConv {
         let input = unsafe { input.as_slice_unchecked::<u8>() };
         let (oh, ow) = s.out();
         let plane = oh * ow;
-        let mut out = vec![0u8; n * s.co * plane];
         let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| {
             // SAFETY: the op is only made where the CPU has AVX-512 ([`packed_q`]).
             unsafe { requantise(sums, self.offset[o], self.scale[o], self.y0, bytes) }
         };
-        for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
-            match &self.amx {
-                Some(amx) => amx.run(s, src, self.x0, (&self.offset, &self.scale, self.y0), dst),
-                None => self.run_vnni(src, requant, dst),
+        let mut t = output_tensor(&[n, s.co, oh, ow], |out: &mut [u8]| {
+            for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
+                match &self.amx {
+                    Some(amx) => amx.run(s, src, self.x0, (&self.offset, &self.scale, self.y0), dst),
+                    None => self.run_vnni(src, requant, dst),
+                }
             }
-        }
-        let mut t = tract_ndarray::Array4::from_shape_vec((n, s.co, oh, ow), out)?.into_tensor();
+            Ok(())
+        })?;
         // SAFETY: same storage type (u8), the output fact's quantisation parameters.
         unsafe { t.set_datum_type(self.out_dt) };
         Ok(tvec!(t.into_tvalue()))

@@ -13,7 +13,7 @@ use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::xcorr_kernel::{correlate_channel, Geometry};
-use super::{all_ones, no_padding, par_chunks};
+use super::{all_ones, no_padding, output_tensor, par_chunks};
 
 /// `out[n,c,y,x] = bias[c] + Σ_{i,j} input[n,c,y+i,x+j]·kernel[c,0,i,j]`: inputs `input`
 /// [N,C,H,W], `kernel` [C,1,kh,kw] and `bias` (a scalar or [C]), all f32; no padding, stride 1.
@@ -48,7 +48,6 @@ impl EvalOp for DepthwiseXCorr {
         let (input, kernel, bias) = (input.as_slice::<f32>()?, kernel.as_slice::<f32>()?, bias.as_slice::<f32>()?);
         ensure!(bias.len() == 1 || bias.len() == c, "DepthwiseXCorr: {} bias values for {c} channels", bias.len());
         let plane = g.out_h() * g.out_w();
-        let mut out = vec![0f32; n * c * plane];
         let one = |plane_ix: usize, dst: &mut [f32], scratch: &mut [f32]| {
             let ch = plane_ix % c;
             let src = &input[plane_ix * h * w..(plane_ix + 1) * h * w];
@@ -56,9 +55,11 @@ impl EvalOp for DepthwiseXCorr {
             let b = if bias.len() == 1 { bias[0] } else { bias[ch] };
             correlate_channel(g, src, k, b, dst, scratch);
         };
-        par_chunks(&mut out, plane, |i, dst| one(i, dst, &mut vec![0f32; g.scratch_len()]));
-        let out = tract_ndarray::Array4::from_shape_vec((n, c, g.out_h(), g.out_w()), out)?;
-        Ok(tvec!(out.into_tensor().into_tvalue()))
+        let out = output_tensor(&[n, c, g.out_h(), g.out_w()], |out: &mut [f32]| {
+            par_chunks(out, plane, |i, dst| one(i, dst, &mut vec![0f32; g.scratch_len()]));
+            Ok(())
+        })?;
+        Ok(tvec!(out.into_tvalue()))
     }
 }
 
