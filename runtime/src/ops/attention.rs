@@ -156,7 +156,7 @@ fn gemm_generic<const FUSED: bool>(dst: &mut [f32], n: usize, a: &[f32], kl: usi
         let mr = MR.min(m - i);
         // Rows past the last are computed again from the last (and not stored).
         let rows: [&[f32]; MR] = std::array::from_fn(|r| &a[(i + r.min(mr - 1)) * kl..][..kl]);
-        assert!(b.len() >= kl * ldb && n <= ldb && ldb % NR == 0, "b holds kl rows of whole vectors");
+        assert!(b.len() >= kl * ldb && n <= ldb && ldb.is_multiple_of(NR), "b holds kl rows of whole vectors");
         for j0 in (0..n).step_by(NR) {
             let mut acc = [[0f32; NR]; MR];
             for k in 0..kl {
