@@ -16,6 +16,7 @@ mod norm;
 mod pool;
 mod qconv;
 mod qconv_amx;
+mod qconv_kernel;
 mod xcorr;
 mod xcorr_kernel;
 

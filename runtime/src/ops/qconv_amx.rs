@@ -166,7 +166,7 @@ unsafe fn requant_columns(
             // `POS_BLOCK` bytes at every channel's row (the caller's slice).
             unsafe {
                 let column = _mm512_i32gather_epi32::<4>(lanes, tile.as_ptr());
-                let bytes = super::qconv::requant16(column, offset, scale, y0);
+                let bytes = super::qconv_kernel::requant16(column, offset, scale, y0);
                 _mm_storeu_si128(rows[o * stride + ph * T..][..T].as_mut_ptr().cast(), bytes);
             }
         }

@@ -16,7 +16,7 @@ use super::xcorr_kernel::{correlate_channel, Geometry};
 use super::{all_ones, no_padding, output_tensor, par_chunks};
 
 /// `out[n,c,y,x] = bias[c] + Σ_{i,j} input[n,c,y+i,x+j]·kernel[c,0,i,j]`: inputs `input`
-/// [N,C,H,W], `kernel` [C,1,kh,kw] and `bias` (a scalar or [C]), all f32; no padding, stride 1.
+/// `[N,C,H,W]`, `kernel` `[C,1,kh,kw]` and `bias` (a scalar or `[C]`), all f32; no padding, stride 1.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct DepthwiseXCorr;
 

@@ -1,0 +1,84 @@
+//! The inner loops of [`super::PackedQConv`]: the AVX-512 VNNI tiles (8 output channels x 32
+//! positions, `vpdpbusd` on words of four u8 inputs and four i8 weights) and the requantisation
+//! both its kernels share (16 lanes, bit for bit the scalar formula).
+
+use super::qconv::{PX, ROWS};
+
+/// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
+    use std::arch::x86_64::*;
+    let mut chunks = sums.chunks_exact(16);
+    let mut outs = out.chunks_exact_mut(16);
+    for (s, o) in (&mut chunks).zip(&mut outs) {
+        // SAFETY: 16 i32 in, 16 bytes out.
+        unsafe {
+            let v = _mm512_loadu_si512(s.as_ptr().cast());
+            _mm_storeu_si128(o.as_mut_ptr().cast(), requant16(v, offset, scale, y0));
+        }
+    }
+    for (o, &s) in outs.into_remainder().iter_mut().zip(chunks.remainder()) {
+        *o = (((s + offset) as f32 * scale).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8;
+    }
+}
+
+/// [`requantise`] on 16 lanes, bit for bit the same as the scalar formula.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+pub(super) fn requant16(v: std::arch::x86_64::__m512i, offset: i32, scale: f32, y0: u8) -> std::arch::x86_64::__m128i {
+    use std::arch::x86_64::*;
+    let f = _mm512_mul_ps(_mm512_cvtepi32_ps(_mm512_add_epi32(v, _mm512_set1_epi32(offset))), _mm512_set1_ps(scale));
+    let f = _mm512_add_ps(
+        _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f),
+        _mm512_set1_ps(y0 as f32),
+    );
+    let f = _mm512_min_ps(_mm512_max_ps(f, _mm512_setzero_ps()), _mm512_set1_ps(255.0));
+    _mm512_cvtepi32_epi8(_mm512_cvttps_epi32(f))
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+pub(super) unsafe fn requantise(_: &[i32], _: i32, _: f32, _: u8, _: &mut [u8]) {
+    unreachable!("PackedQConv is only made on x86_64 with AVX-512 VNNI")
+}
+
+/// The bytes of a word buffer.
+pub(super) fn bytemuck_words(words: &mut [u32]) -> &mut [u8] {
+    // SAFETY: u32 has no padding and any byte pattern is a valid u32; the length is exact.
+    unsafe { std::slice::from_raw_parts_mut(words.as_mut_ptr().cast::<u8>(), words.len() * 4) }
+}
+
+/// `sums[tile][r][q] = Σ_taps words[tap + tile·PX + q] · weights[tap][r]` (four u8 x i8
+/// products per word).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vnni")]
+pub(super) unsafe fn tiles_vnni(words: &[u32], taps: &[usize], weights: &[i32], positions: usize, sums: &mut [i32]) {
+    use std::arch::x86_64::*;
+    for (tile, sums) in sums.chunks_exact_mut(PX * ROWS).enumerate().take(positions.div_ceil(PX)) {
+        // SAFETY: the caller guarantees the loads are in bounds.
+        unsafe {
+            let base = words.as_ptr().add(tile * PX).cast::<i32>();
+            let mut a = [_mm512_setzero_si512(); 2 * ROWS];
+            let mut w = weights.as_ptr();
+            for &t in taps {
+                let x0 = _mm512_loadu_si512(base.add(t).cast());
+                let x1 = _mm512_loadu_si512(base.add(t + 16).cast());
+                for r in 0..ROWS {
+                    let b = _mm512_set1_epi32(*w.add(r));
+                    a[2 * r] = _mm512_dpbusd_epi32(a[2 * r], x0, b);
+                    a[2 * r + 1] = _mm512_dpbusd_epi32(a[2 * r + 1], x1, b);
+                }
+                w = w.add(ROWS);
+            }
+            let s = sums.as_mut_ptr();
+            for (q, a) in a.iter().enumerate() {
+                _mm512_storeu_si512(s.add(16 * q).cast(), *a);
+            }
+        }
+    }
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+pub(super) unsafe fn tiles_vnni(_: &[u32], _: &[usize], _: &[i32], _: usize, _: &mut [i32]) {
+    unreachable!("PackedQConv is only made on x86_64 with AVX-512 VNNI")
+}
