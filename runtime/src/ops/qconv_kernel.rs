@@ -2,6 +2,7 @@
 //! positions, `vpdpbusd` on words of four u8 inputs and four i8 weights) and the requantisation
 //! both its kernels share (16 lanes, bit for bit the scalar formula).
 
+#[cfg(target_arch = "x86_64")]
 use super::qconv::{PX, ROWS};
 
 /// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`.
