@@ -125,7 +125,7 @@ const NR: usize = 16;
 /// of `k`.
 fn gemm(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") && super::avx2_fma() {
+    if super::avx512_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
         return unsafe { gemm_avx512(dst, n, a, kl, b, ldb) };
     }
@@ -206,7 +206,7 @@ impl EvalOp for RowSoftmax {
 
 fn softmax_row(r: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") && super::avx2_fma() {
+    if super::avx512_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
         return unsafe { softmax_row_avx512(r) };
     }

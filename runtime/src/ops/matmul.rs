@@ -110,7 +110,7 @@ fn tile(panel: &[f32], x: &[f32], k: usize, j0: usize, rows: usize) -> [[f32; PA
     // Rows past the last are the last again (computed, not stored).
     let xs: [&[f32]; ROWS] = std::array::from_fn(|r| &x[(j0 + r.min(rows - 1)) * k..][..k]);
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") && super::avx2_fma() {
+    if super::avx512_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
         return unsafe { tile_avx512(panel, xs) };
     }

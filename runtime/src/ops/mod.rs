@@ -138,6 +138,13 @@ fn avx2_fma() -> bool {
     std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
 }
 
+/// Whether the CPU has AVX-512F as well as AVX2 and FMA (the 16-lane paths of the f32 kernels
+/// compiled for `avx512f,avx2,fma`).
+#[cfg(target_arch = "x86_64")]
+fn avx512_fma() -> bool {
+    std::arch::is_x86_feature_detected!("avx512f") && avx2_fma()
+}
+
 /// A pointer that threads writing disjoint elements share.
 struct SyncPtr<T>(*mut T);
 

@@ -65,37 +65,25 @@ impl ChannelMaxPool {
     ) -> TractResult<Tensor> {
         let (oh, ow) = (self.out(h), self.out(w));
         output_tensor(&[n, c, oh, ow], |out: &mut [T]| {
-            self.pool_into(input, [h, w], lowest, max, out);
-            Ok(())
-        })
-    }
-
-    fn pool_into<T: Datum + Copy>(
-        &self,
-        input: &[T],
-        [h, w]: [usize; 2],
-        lowest: T,
-        max: impl Fn(T, T) -> T + Copy + Sync,
-        out: &mut [T],
-    ) {
-        let (oh, ow) = (self.out(h), self.out(w));
-        par_chunks(out, oh * ow, |plane, dst| {
-            let src = &input[plane * h * w..(plane + 1) * h * w];
-            // The window's rows reduced first (element-wise, vectorised), then its columns.
-            let mut cols = vec![lowest; w];
-            for (y, row) in dst.chunks_exact_mut(ow).enumerate() {
-                cols.fill(lowest);
-                for r in src[y * self.stride * w..(y * self.stride + self.k) * w].chunks_exact(w) {
-                    for (m, &v) in cols.iter_mut().zip(r) {
-                        *m = max(*m, v);
+            par_chunks(out, oh * ow, |plane, dst| {
+                let src = &input[plane * h * w..(plane + 1) * h * w];
+                // The window's rows reduced first (element-wise, vectorised), then its columns.
+                let mut cols = vec![lowest; w];
+                for (y, row) in dst.chunks_exact_mut(ow).enumerate() {
+                    cols.fill(lowest);
+                    for r in src[y * self.stride * w..(y * self.stride + self.k) * w].chunks_exact(w) {
+                        for (m, &v) in cols.iter_mut().zip(r) {
+                            *m = max(*m, v);
+                        }
+                    }
+                    for (x, d) in row.iter_mut().enumerate() {
+                        let x0 = x * self.stride;
+                        *d = cols[x0..x0 + self.k].iter().fold(lowest, |m, &v| max(m, v));
                     }
                 }
-                for (x, d) in row.iter_mut().enumerate() {
-                    let x0 = x * self.stride;
-                    *d = cols[x0..x0 + self.k].iter().fold(lowest, |m, &v| max(m, v));
-                }
-            }
-        });
+            });
+            Ok(())
+        })
     }
 }
 
