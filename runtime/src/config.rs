@@ -1,9 +1,82 @@
-//! Tracker settings.
+//! Tracker settings: which tracker family a plan is for, and every number its loop needs.
+//!
+//! The loop itself ([`crate::Tracker`]) is one crop + state machine for all families; what
+//! differs between them is how the search graph's outputs become boxes and scores
+//! ([`Family`]) and a few switches of their official code, which are settings here rather
+//! than constants in the loop.
 
-/// Tracker hyper-parameters of the official PRL-Track configuration.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+use serde::{Deserialize, Serialize};
+
+/// The Siamese tracker families the runtime can run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Family {
+    /// PRL-Track (IROS 2024): search outputs `loc` [1,4,N,N] (left, right, top, bottom as
+    /// `atanh` offsets), `cls1` [1,2,N,N], `cls2` [1,1,N,N]; the score mixes the softmax of
+    /// `cls1` with the raw `cls2` logit.
+    PrlTrack,
+    /// NanoTrack (v2, HonglinChu/SiamTrackers): search outputs `cls` [1,2,N,N] and `loc`
+    /// [1,4,N,N] (left, top, right, bottom distances in crop pixels); the score is the softmax
+    /// of `cls`, channel 1.
+    Nanotrack,
+}
+
+impl Family {
+    /// Every family.
+    pub const ALL: [Family; 2] = [Family::PrlTrack, Family::Nanotrack];
+
+    /// The name used in manifests and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Family::PrlTrack => "prl-track",
+            Family::Nanotrack => "nanotrack",
+        }
+    }
+
+    /// The family called `name`, if any.
+    pub fn parse(name: &str) -> Option<Family> {
+        Family::ALL.into_iter().find(|f| f.name() == name)
+    }
+
+    /// The search graph's outputs this family decodes, in order, as `(name, channels)`; each
+    /// is `[1, channels, score_size, score_size]`.
+    pub fn search_outputs(self) -> &'static [(&'static str, usize)] {
+        match self {
+            Family::PrlTrack => &[("loc", 4), ("cls1", 2), ("cls2", 1)],
+            Family::Nanotrack => &[("cls", 2), ("loc", 4)],
+        }
+    }
+}
+
+fn prl_track() -> Family {
+    Family::PrlTrack
+}
+fn one() -> f64 {
+    1.0
+}
+fn prl_grid_origin() -> f64 {
+    // The official `generate_anchor`: `stride * i + 63 - TRAIN.SEARCH_SIZE // 2` (287 // 2).
+    63.0 - 143.0
+}
+fn prl_loc_scale() -> f64 {
+    // The official `generate_anchor` multiplies the atanh offsets by the literal 143.
+    143.0
+}
+fn prl_ratio_eps() -> f64 {
+    1e-5
+}
+fn yes() -> bool {
+    true
+}
+
+/// Tracker hyper-parameters. Fields added after the first plan format have serde defaults
+/// equal to PRL-Track's, so older PRL-Track plans and settings files still read unchanged.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrackerConfig {
+    /// Which tracker's decoding and scoring the plan's outputs need.
+    #[serde(default = "prl_track")]
+    pub family: Family,
     /// Template crop side (`EXEMPLAR_SIZE`).
     pub exemplar_size: usize,
     /// Search crop side (`INSTANCE_SIZE`).
@@ -16,20 +89,48 @@ pub struct TrackerConfig {
     pub window_influence: f64,
     /// Size update rate (`LR`).
     pub lr: f64,
-    /// Weight of the `cls1` score (`w2`).
+    /// Weight of the `cls1` score (`w2`; PRL-Track only).
+    #[serde(default = "one")]
     pub w2: f64,
-    /// Weight of the `cls2` score (`w3`).
+    /// Weight of the `cls2` score (`w3`; PRL-Track only).
+    #[serde(default = "one")]
     pub w3: f64,
     /// Output stride of the score map in crop pixels.
     pub stride: usize,
     /// Score map side.
     pub score_size: usize,
+    /// Offset, in search-crop pixels from the crop centre, of score cell (0, 0): cell (row i,
+    /// column j) sits at `(grid_origin + stride * j, grid_origin + stride * i)`. PRL-Track:
+    /// `63 - 287 // 2 = -80` (centred on 11 cells); NanoTrack: `-(16 // 2) * 16 = -128` (not
+    /// centred: -128..112).
+    #[serde(default = "prl_grid_origin")]
+    pub grid_origin: f64,
+    /// Factor of PRL-Track's `atanh` box offsets (the official code's literal 143; unused by
+    /// families whose offsets are pixels).
+    #[serde(default = "prl_loc_scale")]
+    pub loc_scale: f64,
+    /// The `eps` of the official penalty: `change(r) = max(r, 1 / (r + eps))` and aspect ratios
+    /// `w / (h + eps)`. PRL-Track: 1e-5; NanoTrack: 0 (none).
+    #[serde(default = "prl_ratio_eps")]
+    pub ratio_eps: f64,
+    /// When the target covers more than half of the frame, search crops keep the template's
+    /// window side (PRL-Track's `scaleaa` rule; NanoTrack has none).
+    #[serde(default = "yes")]
+    pub large_target_keeps_template_size: bool,
 }
 
 impl Default for TrackerConfig {
-    /// The official settings (`experiments/config.yaml`).
+    /// PRL-Track's official settings ([`TrackerConfig::prl_track`]).
     fn default() -> Self {
+        TrackerConfig::prl_track()
+    }
+}
+
+impl TrackerConfig {
+    /// PRL-Track's official settings (`experiments/config.yaml`).
+    pub fn prl_track() -> Self {
         TrackerConfig {
+            family: Family::PrlTrack,
             exemplar_size: 127,
             instance_size: 287,
             context_amount: 0.5,
@@ -40,6 +141,65 @@ impl Default for TrackerConfig {
             w3: 1.0,
             stride: 16,
             score_size: 11,
+            grid_origin: prl_grid_origin(),
+            loc_scale: prl_loc_scale(),
+            ratio_eps: prl_ratio_eps(),
+            large_target_keeps_template_size: true,
         }
+    }
+
+    /// NanoTrack v2's official settings (`models/config/configv2.yaml`).
+    pub fn nanotrack() -> Self {
+        TrackerConfig {
+            family: Family::Nanotrack,
+            exemplar_size: 127,
+            instance_size: 255,
+            context_amount: 0.5,
+            penalty_k: 0.150,
+            window_influence: 0.490,
+            lr: 0.385,
+            w2: 1.0,
+            w3: 1.0,
+            stride: 16,
+            score_size: 16,
+            grid_origin: -((16 / 2) as f64) * 16.0,
+            loc_scale: 1.0,
+            ratio_eps: 0.0,
+            large_target_keeps_template_size: false,
+        }
+    }
+
+    /// The family's default settings.
+    pub fn for_family(family: Family) -> Self {
+        match family {
+            Family::PrlTrack => TrackerConfig::prl_track(),
+            Family::Nanotrack => TrackerConfig::nanotrack(),
+        }
+    }
+
+    /// Settings that cannot run (zero or absurd sizes, non-finite numbers), as a message.
+    pub fn check(&self) -> Result<(), String> {
+        let sizes = [self.exemplar_size, self.instance_size, self.stride, self.score_size];
+        if sizes.iter().any(|&s| s == 0 || s > 4096) {
+            return Err(format!(
+                "tracker sizes must be between 1 and 4096: exemplar {}, instance {}, stride {}, score map {}",
+                self.exemplar_size, self.instance_size, self.stride, self.score_size
+            ));
+        }
+        let reals = [
+            self.context_amount,
+            self.penalty_k,
+            self.window_influence,
+            self.lr,
+            self.w2,
+            self.w3,
+            self.grid_origin,
+            self.loc_scale,
+            self.ratio_eps,
+        ];
+        if reals.iter().any(|v| !v.is_finite()) {
+            return Err("tracker settings must be finite numbers".into());
+        }
+        Ok(())
     }
 }

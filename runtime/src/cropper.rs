@@ -4,7 +4,7 @@
 
 use crate::{crop_to_tensor, get_subwindow, BBox, Error, Frame, Result, TrackerConfig};
 
-/// Cuts template and search crops as the official `PRLTrack` does.
+/// Cuts template and search crops as the official trackers (`PRLTrack`, `NanoTracker`) do.
 #[derive(Debug, Clone)]
 pub struct Cropper {
     config: TrackerConfig,
@@ -66,10 +66,11 @@ impl Cropper {
         Ok(TemplateCrop { z, center, size, s_z, channel_average })
     }
 
-    /// `s_z` of a search crop: the context size of a target of `size`, or the template's when
-    /// the target covers more than half of the `width`x`height` frame.
+    /// `s_z` of a search crop: the context size of a target of `size`, or, where the settings
+    /// keep PRL-Track's rule, the template's when the target covers more than half of the
+    /// `width`x`height` frame.
     pub fn search_context(&self, size: (f64, f64), width: usize, height: usize, template: &TemplateCrop) -> f64 {
-        if size.0 * size.1 > 0.5 * (width * height) as f64 {
+        if self.config.large_target_keeps_template_size && size.0 * size.1 > 0.5 * (width * height) as f64 {
             template.s_z
         } else {
             self.context_size(size)

@@ -1,7 +1,8 @@
-//! `prl-runtime`: the slim part of the PRL-Track toolchain that ships on the camera. It loads a
-//! compiled plan (decluttered NNEF graphs plus a manifest, optimised by tract when loaded), cuts
-//! and resizes crops exactly as the official tracker does, and runs the official PRL-Track
-//! tracking loop. Its dependency tree holds no tract-onnx, no protobuf and no command-line parser.
+//! `prl-runtime`: the slim part of the toolchain that ships on the camera. It loads a compiled
+//! plan (decluttered NNEF graphs plus a manifest, optimised by tract when loaded), cuts and
+//! resizes crops exactly as the official trackers do, and runs their tracking loop: one crop +
+//! state machine for every tracker family (PRL-Track, NanoTrack), with the family's decoding
+//! and scoring beside it (`family.rs`) and its settings from the plan. Its dependency tree holds no tract-onnx, no protobuf and no command-line parser.
 //!
 //! ```no_run
 //! # fn main() -> Result<(), prl_runtime::Error> {
@@ -21,6 +22,7 @@ mod config;
 mod crop;
 mod cropper;
 mod error;
+mod family;
 mod frame;
 mod manifest;
 mod nnef;
@@ -30,13 +32,13 @@ mod quantization;
 mod resize;
 mod tracker;
 
-pub use config::TrackerConfig;
+pub use config::{Family, TrackerConfig};
 pub use crop::{crop_to_tensor, get_subwindow};
 pub use cropper::{Cropper, TemplateCrop};
 pub use error::{Error, Result};
 pub use frame::{Frame, PixelLayout};
 pub use manifest::{
-    GraphInfo, PlanManifest, Preprocessing, TensorInfo, WeightsInfo, PLAN_FORMAT_VERSION, PLAN_MANIFEST,
+    GraphInfo, PlanManifest, Preprocessing, SourceFile, TensorInfo, WeightsInfo, PLAN_FORMAT_VERSION, PLAN_MANIFEST,
 };
 pub use nnef::nnef;
 pub use ops::{

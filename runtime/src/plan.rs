@@ -39,15 +39,12 @@ fn to_vec(v: &TValue, graph: &'static str) -> Result<Vec<f32>> {
     flat.map_err(|e| run_err(graph, e))
 }
 
-/// The search graph's outputs, flattened row-major.
+/// The search graph's outputs, flattened row-major, in the graph's (and the manifest's) order:
+/// PRL-Track `loc`, `cls1`, `cls2`; NanoTrack `cls`, `loc` ([`crate::Family::search_outputs`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SearchOutput {
-    /// [4, 11, 11] box regression.
-    pub loc: Vec<f32>,
-    /// [2, 11, 11] classification logits.
-    pub cls1: Vec<f32>,
-    /// [1, 11, 11] quality logit.
-    pub cls2: Vec<f32>,
+    /// One flattened tensor per output.
+    pub outputs: Vec<Vec<f32>>,
 }
 
 /// Use `n` threads for tract's matrix products (1: single-threaded). Applies process-wide.
@@ -66,15 +63,16 @@ impl Plan {
         let bad = |path: &Path, msg: String| Error::Plan { path: path.to_path_buf(), msg };
         let manifest: PlanManifest =
             serde_json::from_slice(&bytes).map_err(|e| bad(&mpath, format!("not a plan manifest: {e}")))?;
-        if manifest.format_version != PLAN_FORMAT_VERSION || manifest.model != "prl-track" {
+        if manifest.format_version != PLAN_FORMAT_VERSION {
             return Err(bad(
                 &mpath,
                 format!(
-                    "plan format {} of model `{}`; this runtime reads format {PLAN_FORMAT_VERSION} of `prl-track`",
+                    "plan format {} of model `{}`; this runtime reads format {PLAN_FORMAT_VERSION}",
                     manifest.format_version, manifest.model
                 ),
             ));
         }
+        manifest.check().map_err(|msg| bad(&mpath, msg))?;
         let knobs = manifest.optimizer_knobs.iter().map(|(k, v)| (k.as_str(), v.as_str()));
         let knobs = KnobScope::new(knobs).map_err(|e| bad(&mpath, format!("optimizer_knobs: {e}")))?;
         // The two graphs load and optimise independently: side by side.
@@ -97,21 +95,23 @@ impl Plan {
         &self.dir
     }
 
-    /// Run the template graph on a float NCHW BGR crop (`[1,3,127,127]`, row-major).
+    /// Run the template graph on a float NCHW BGR crop (`[1,3,127,127]`, row-major): the
+    /// target's features, in the search graph's input order after the crop.
     pub fn template(&self, z: &[f32]) -> Result<TemplateFeatures> {
         let input = tensor("template", &self.manifest.template.inputs[0].shape, z)?;
         let outs = self.template.run(tvec![input.into()]).map_err(|e| run_err("template", e))?;
         Ok(TemplateFeatures(outs))
     }
 
-    /// Run the search graph on a float NCHW BGR crop (`[1,3,287,287]`) with a target's features.
+    /// Run the search graph on a float NCHW BGR crop (`[1,3,instance,instance]`) with a target's
+    /// features.
     pub fn search(&self, x: &[f32], zf: &TemplateFeatures) -> Result<SearchOutput> {
         let input = tensor("search", &self.manifest.search.inputs[0].shape, x)?;
         let mut inputs: TVec<TValue> = tvec![input.into()];
         inputs.extend(zf.0.iter().cloned());
         let outs = self.search.run(inputs).map_err(|e| run_err("search", e))?;
-        let flat = |i: usize| to_vec(&outs[i], "search");
-        Ok(SearchOutput { loc: flat(0)?, cls1: flat(1)?, cls2: flat(2)? })
+        let outputs = outs.iter().map(|o| to_vec(o, "search")).collect::<Result<_>>()?;
+        Ok(SearchOutput { outputs })
     }
 }
 

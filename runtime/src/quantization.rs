@@ -88,7 +88,8 @@ pub struct QuantLayer {
     pub input_range: (f32, f32),
     /// Calibrated range of its output (after a folded ReLU).
     pub output_range: (f32, f32),
-    /// Relative error of loc, cls1, cls2 with this layer alone quantised (sensitivity pass).
+    /// Relative error of each search output (PRL-Track: loc, cls1, cls2; NanoTrack: cls, loc)
+    /// with this layer alone quantised (sensitivity pass).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub sensitivity: Option<[f64; 3]>,
+    pub sensitivity: Option<Vec<f64>>,
 }

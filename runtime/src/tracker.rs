@@ -1,5 +1,7 @@
-//! The official PRL-Track tracking loop (`PRLTrack` with `experiments/config.yaml`), to the
-//! number: crops, decoding of the 11x11 grid, scale/aspect penalties, cosine window, smoothing.
+//! The official Siamese tracking loop, to the number: crops, decoding of the score map (per
+//! family, [`crate::family`]), scale/aspect penalties, cosine window, smoothing. It is PRL-Track's
+//! `PRLTrack` and NanoTrack's `NanoTracker` at once: where their code differs, a setting of
+//! [`TrackerConfig`] says which way (grid origin, penalty `eps`, the large-target crop rule).
 
 use std::time::{Duration, Instant};
 
@@ -156,7 +158,7 @@ impl Tracker {
         Ok(self.cropper.search(frame, st.center, st.size, &st.template))
     }
 
-    /// The cell of the 11x11 grid `update` would pick for `out` from the current state (the
+    /// The cell of the score map `update` would pick for `out` from the current state (the
     /// argmax of the penalised, windowed score), without changing the state: for comparing two
     /// networks' outputs on the same crop.
     pub fn best_cell(&self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<usize> {
@@ -167,30 +169,22 @@ impl Tracker {
     fn cells(&self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<Cells> {
         let cfg = &self.config;
         let st = self.state.as_ref().ok_or_else(|| Error::Input("update called before init".into()))?;
-        let cells = cfg.score_size * cfg.score_size;
-        if out.loc.len() != 4 * cells || out.cls1.len() != 2 * cells || out.cls2.len() != cells {
-            return Err(Error::Input(format!(
-                "search output sizes {}/{}/{} do not fit a {cells}-cell grid",
-                out.loc.len(),
-                out.cls1.len(),
-                out.cls2.len()
-            )));
-        }
         let scale_z = cfg.exemplar_size as f64 / self.cropper.search_context(st.size, frame_w, frame_h, &st.template);
-        let (pred, score) = decode(cfg, &out.loc, &out.cls1, &out.cls2);
+        let (pred, score) = crate::family::decode(cfg, out)?;
 
         let sz = |w: f64, h: f64| {
             let pad = (w + h) * 0.5;
             ((w + pad) * (h + pad)).sqrt()
         };
         let (tw, th) = (st.size.0 * scale_z, st.size.1 * scale_z);
+        let eps = cfg.ratio_eps;
         let n = pred.len();
         let mut penalty = Vec::with_capacity(n);
         let mut pscore = Vec::with_capacity(n);
         for i in 0..n {
             let [_, _, pw, ph] = pred[i];
-            let s_c = change(sz(pw, ph) / sz(tw, th));
-            let r_c = change((st.size.0 / (st.size.1 + 1e-5)) / (pw / (ph + 1e-5)));
+            let s_c = change(sz(pw, ph) / sz(tw, th), eps);
+            let r_c = change((st.size.0 / (st.size.1 + eps)) / (pw / (ph + eps)), eps);
             let p = (-(r_c * s_c - 1.0) * cfg.penalty_k).exp();
             penalty.push(p);
             pscore.push(p * score[i] * (1.0 - cfg.window_influence) + self.window[i] * cfg.window_influence);
@@ -237,53 +231,14 @@ struct Cells {
     scale_z: f64,
 }
 
-/// `np.maximum(r, 1/(r+1e-5))`: NaN propagates.
-fn change(r: f64) -> f64 {
-    let other = 1.0 / (r + 1e-5);
+/// `np.maximum(r, 1/(r+eps))` (PRL-Track: eps 1e-5; NanoTrack: `1/r`, eps 0): NaN propagates.
+fn change(r: f64, eps: f64) -> f64 {
+    let other = 1.0 / (r + eps);
     if r.is_nan() || other.is_nan() {
         f64::NAN
     } else {
         r.max(other)
     }
-}
-
-/// Boxes `[cx, cy, w, h]` in search-crop pixels relative to the crop centre, and scores, per cell
-/// (row-major over the score map), exactly as `generate_anchor` and the score lines compute them.
-pub(crate) fn decode(cfg: &TrackerConfig, loc: &[f32], cls1: &[f32], cls2: &[f32]) -> (Vec<[f64; 4]>, Vec<f64>) {
-    let n = cfg.score_size;
-    let cells = n * n;
-    let half = (cfg.instance_size / 2) as f64;
-    // dcon: values <= -1 become -0.99, >= 1 become 0.99 (others, even beyond ±0.99, stay); atanh
-    // in float32 as numpy computes it on the float32 map.
-    let dcon = |v: f32| -> f32 {
-        let v = if v <= -1.0 {
-            -0.99f32
-        } else if v >= 1.0 {
-            0.99f32
-        } else {
-            v
-        };
-        ((1.0 + v).ln() - (1.0 - v).ln()) / 2.0 * 143.0
-    };
-    let mut pred = Vec::with_capacity(cells);
-    let mut score = Vec::with_capacity(cells);
-    for i in 0..cells {
-        let (row, col) = (i / n, i % n);
-        let ax = (cfg.stride * col) as f64 + 63.0 - half;
-        let ay = (cfg.stride * row) as f64 + 63.0 - half;
-        // Sizes are float32 sums, as numpy adds the float32 map.
-        let d: [f32; 4] = std::array::from_fn(|k| dcon(loc[k * cells + i]));
-        let (w, h) = ((d[0] + d[1]) as f64, (d[2] + d[3]) as f64);
-        let (wh, hh) = (((d[0] + d[1]) / 2.0) as f64, ((d[2] + d[3]) / 2.0) as f64);
-        pred.push([ax - d[0] as f64 + wh, ay - d[2] as f64 + hh, w, h]);
-        // Scores in float32 too: softmax(cls1)[1] * w2 plus the raw cls2 logit * w3, halved.
-        let (c0, c1) = (cls1[i], cls1[cells + i]);
-        let m = c0.max(c1);
-        let (e0, e1) = ((c0 - m).exp(), (c1 - m).exp());
-        let s1 = e1 / (e0 + e1);
-        score.push(((s1 * cfg.w2 as f32 + cls2[i] * cfg.w3 as f32) / 2.0) as f64);
-    }
-    (pred, score)
 }
 
 #[cfg(test)]
@@ -297,18 +252,8 @@ mod tests {
         assert_eq!(py_max(10.0, py_min(f64::NAN, 100.0)), 10.0);
         let h = hanning(11);
         assert!((h[5] - 1.0).abs() < 1e-15 && h[0] == 0.0 && (h[1] - 0.0954915028125263).abs() < 1e-12);
-        assert!(change(f64::NAN).is_nan());
-        assert_eq!(change(0.5), 1.0 / 0.50001);
-    }
-
-    #[test]
-    fn decode_centre_cell_with_zero_regression() {
-        let cfg = TrackerConfig::default();
-        let cells = 121;
-        let (pred, score) = decode(&cfg, &vec![0.0; 4 * cells], &vec![0.0; 2 * cells], &vec![0.4; cells]);
-        // Centre cell (5,5): anchor 16*5 + 63 - 143 = 0; zero sizes.
-        assert_eq!(pred[60], [0.0, 0.0, 0.0, 0.0]);
-        assert_eq!(pred[0][..2], [-80.0, -80.0]);
-        assert_eq!(score[0], ((0.5f32 + 0.4f32) / 2.0) as f64);
+        assert!(change(f64::NAN, 1e-5).is_nan());
+        assert_eq!(change(0.5, 1e-5), 1.0 / 0.50001);
+        assert_eq!(change(0.5, 0.0), 2.0);
     }
 }
