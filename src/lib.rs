@@ -9,6 +9,7 @@ mod frames;
 mod metrics;
 pub mod ope;
 mod sequence;
+pub mod tracking;
 
 pub use calibration::{calibration_crops, CalibrationSpec, POSITION_JITTER, SCALE_JITTER};
 pub use dataset::{detect, Dataset, Format, Video, UAV123_ATTRIBUTES};

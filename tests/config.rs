@@ -11,3 +11,22 @@ fn tracker_toml_is_the_official_configuration() {
     assert_eq!((cfg.context_amount, cfg.penalty_k, cfg.window_influence, cfg.lr), (0.5, 0.08, 0.42, 0.30));
     assert_eq!((cfg.w2, cfg.w3), (1.0, 1.0));
 }
+
+#[test]
+fn nanotrack_toml_is_configv2() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/models/nanotrack-v2/tracker.toml");
+    let cfg: TrackerConfig = toml::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    assert_eq!(cfg, TrackerConfig::nanotrack());
+    assert_eq!((cfg.exemplar_size, cfg.instance_size, cfg.stride, cfg.score_size), (127, 255, 16, 16));
+    assert_eq!((cfg.context_amount, cfg.penalty_k, cfg.window_influence, cfg.lr), (0.5, 0.15, 0.49, 0.385));
+    assert_eq!((cfg.grid_origin, cfg.ratio_eps, cfg.large_target_keeps_template_size), (-128.0, 0.0, false));
+}
+
+#[test]
+fn settings_without_the_newer_fields_read_as_prl_track() {
+    // A plan.json of the first format has no family and no PRL-Track switches.
+    let old = "exemplar_size = 127\ninstance_size = 287\ncontext_amount = 0.5\npenalty_k = 0.08\n\
+               window_influence = 0.42\nlr = 0.30\nw2 = 1.0\nw3 = 1.0\nstride = 16\nscore_size = 11\n";
+    let cfg: TrackerConfig = toml::from_str(old).unwrap();
+    assert_eq!(cfg, TrackerConfig::prl_track());
+}

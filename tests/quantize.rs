@@ -55,7 +55,8 @@ fn held_out_errors(a: &Path, b: &Path) -> [f64; 3] {
         t.init(&f0, init).unwrap();
         for (_, x) in &crops.searches {
             let o = t.plan().search(&x.data, t.features().unwrap()).unwrap();
-            outs[k].push([o.loc, o.cls1, o.cls2]);
+            let [loc, cls1, cls2]: [Vec<f32>; 3] = o.outputs.try_into().expect("three outputs");
+            outs[k].push([loc, cls1, cls2]);
         }
     }
     let mut err = [0.0; 3];

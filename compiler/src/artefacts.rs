@@ -59,6 +59,10 @@ pub struct Manifest {
     /// `sr-flp`): for latency studies only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub variant: Option<String>,
+    /// The tracker family and settings the model needs (imported models carry them; PRL-Track
+    /// models built from a checkpoint take `models/prl-track/tracker.toml` at compile time).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tracker: Option<prl_runtime::TrackerConfig>,
 }
 
 /// A built model in memory: the two ONNX graphs and their manifest.
@@ -92,6 +96,7 @@ pub fn build_model_variant(source: &WeightsSource, variant: net::Variant) -> Res
             path: Some(c.path.display().to_string()),
             sha256: Some(c.sha256.clone()),
             seed: None,
+            files: vec![],
             note: "weights converted from the checkpoint".into(),
         },
         (None, seed) => WeightsInfo {
@@ -99,6 +104,7 @@ pub fn build_model_variant(source: &WeightsSource, variant: net::Variant) -> Res
             path: None,
             sha256: None,
             seed,
+            files: vec![],
             note: "RANDOM WEIGHTS: not a trained model; its boxes mean nothing".into(),
         },
     };
@@ -131,6 +137,7 @@ pub fn build_model_variant(source: &WeightsSource, variant: net::Variant) -> Res
         ),
         preprocessing: preprocessing(),
         variant: (variant != net::Variant::Full).then(|| variant.name().to_string()),
+        tracker: None,
     };
     Ok(BuiltModel { manifest, template, search, unused_keys: weights.unused_keys() })
 }

@@ -9,11 +9,37 @@ use crate::{Error, Result, Tensor};
 
 type Plan = Arc<tp::TypedSimplePlan>;
 
+/// A named input of fixed shape: the network's constant specs or a manifest's entries.
+pub trait InputSpec {
+    /// Value name.
+    fn name(&self) -> &str;
+    /// Fixed shape.
+    fn shape(&self) -> &[usize];
+}
+
+impl InputSpec for TensorSpec {
+    fn name(&self) -> &str {
+        self.name
+    }
+    fn shape(&self) -> &[usize] {
+        self.shape
+    }
+}
+
+impl InputSpec for prl_runtime::TensorInfo {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+}
+
 /// An ONNX graph loaded in tract, optimised and ready to run.
 pub struct OnnxRunner {
     plan: Plan,
     context: String,
-    inputs: Vec<TensorSpec>,
+    inputs: Vec<(String, Vec<usize>)>,
     outputs: Vec<String>,
 }
 
@@ -21,11 +47,11 @@ impl OnnxRunner {
     /// Load ONNX `bytes` with the given fixed inputs (in order). `outputs` selects the values to
     /// compute by name (any named value of the graph, not only its outputs); `None` keeps the
     /// graph's own outputs. `context` names the graph in errors.
-    pub fn new(bytes: &[u8], context: &str, inputs: &[TensorSpec], outputs: Option<&[&str]>) -> Result<Self> {
+    pub fn new(bytes: &[u8], context: &str, inputs: &[impl InputSpec], outputs: Option<&[&str]>) -> Result<Self> {
         let err = |e: tp::TractError| Error::tract(context, format!("{e:#}").replace('\n', " "));
         let mut model = tract_onnx::onnx().model_for_read(&mut &*bytes).map_err(err)?;
         for (i, spec) in inputs.iter().enumerate() {
-            model.set_input_fact(i, InferenceFact::dt_shape(f32::datum_type(), spec.shape)).map_err(err)?;
+            model.set_input_fact(i, InferenceFact::dt_shape(f32::datum_type(), spec.shape())).map_err(err)?;
         }
         if let Some(names) = outputs {
             model.select_outputs_by_name(names.iter()).map_err(err)?;
@@ -49,7 +75,8 @@ impl OnnxRunner {
             })
             .map_err(err)?;
         let plan = tp::TypedSimplePlan::new(model).map_err(err)?;
-        Ok(OnnxRunner { plan, context: context.to_string(), inputs: inputs.to_vec(), outputs: names })
+        let inputs = inputs.iter().map(|s| (s.name().to_string(), s.shape().to_vec())).collect();
+        Ok(OnnxRunner { plan, context: context.to_string(), inputs, outputs: names })
     }
 
     /// Names of the computed outputs, in order.
@@ -67,11 +94,11 @@ impl OnnxRunner {
             ));
         }
         let mut tv = tp::TVec::new();
-        for (t, spec) in inputs.iter().zip(&self.inputs) {
-            if t.shape != spec.shape {
+        for (t, (name, shape)) in inputs.iter().zip(&self.inputs) {
+            if &t.shape != shape {
                 return Err(Error::tract(
                     &self.context,
-                    format!("input `{}` has shape {:?}, expected {:?}", spec.name, t.shape, spec.shape),
+                    format!("input `{name}` has shape {:?}, expected {shape:?}", t.shape),
                 ));
             }
             tv.push(tp::Tensor::from_shape(&t.shape, &t.data).map_err(err)?.into());

@@ -1,7 +1,8 @@
 //! `prl-compiler`: turns a PRL-Track checkpoint (official PyTorch `.pth`, `.safetensors`, or
 //! seeded random weights) into the network as two fixed-shape ONNX graphs (template and search),
 //! runs them with tract, and checks them against tensors exported from the official
-//! implementation.
+//! implementation; [`import`] brings third-party Siamese trackers (NanoTrack) from their ONNX
+//! files into the same two-graph form.
 //!
 //! Layout: [`checkpoint`] reads weights without Python; [`Weights`] looks them up by scoped
 //! prefix so names equal checkpoint keys; [`onnx`] is a generic graph builder; [`net`] is the
@@ -13,6 +14,7 @@ mod artefacts;
 pub mod checkpoint;
 mod engine;
 mod error;
+pub mod import;
 pub mod net;
 pub mod onnx;
 mod plan;
@@ -24,9 +26,10 @@ mod weights;
 pub use artefacts::{
     build_model, build_model_variant, preprocessing, BuiltModel, Manifest, WeightsSource, MODEL_MANIFEST,
 };
+pub use import::{nanotrack::import_nanotrack, FamilyImport, OnnxFile, Parts};
 pub use engine::{NetworkRunner, OnnxRunner};
 pub use error::{Error, Result};
-pub use plan::{compile, compile_int8, CompiledPlan, TRACT_VERSION};
+pub use plan::{compile, compile_int8, rebuild_model, CompiledPlan, TRACT_VERSION};
 pub use quant::{quantize, Calibration, Method, PerChannel, QuantizeOptions};
 pub use tensor::{relative_error, Tensor};
 pub use verify::{read_golden, verify, StageReport, VerifyReport};

@@ -97,3 +97,44 @@ fn to_nnef(onnx: &[u8], info: &GraphInfo, context: &str) -> Result<Vec<u8>> {
     let model = model.into_typed().and_then(|m| m.into_decluttered()).map_err(err)?;
     prl_runtime::nnef().write_to_tar(&model, Vec::new()).map_err(err)
 }
+
+/// The fp32 model a plan was compiled from, made again from the sources its manifest records
+/// (a checkpoint, a seed, or the ONNX files of an imported model), each checked by SHA-256.
+/// `path` names the manifest in errors.
+pub fn rebuild_model(m: &PlanManifest, path: &Path) -> Result<BuiltModel> {
+    let w = &m.weights;
+    let bad = |msg: String| Error::format(path, msg);
+    let model = match (w.kind.as_str(), &w.path, w.seed) {
+        ("onnx", _, _) => {
+            let file = |role: &str| w.files.iter().find(|f| f.role == role).map(|f| Path::new(&f.path));
+            let (Some(backbone), Some(head)) = (file("backbone"), file("head")) else {
+                return Err(bad("the manifest does not name the imported model's backbone and head files".into()));
+            };
+            match m.tracker.family {
+                prl_runtime::Family::Nanotrack => crate::import_nanotrack(backbone, head, file("config"))?,
+                f => return Err(bad(format!("imported models of family {} cannot be rebuilt", f.name()))),
+            }
+        }
+        ("checkpoint", Some(p), _) => {
+            let source = crate::WeightsSource::Checkpoint(p.into());
+            let variant = match &m.variant {
+                Some(v) => crate::net::Variant::parse(v).ok_or_else(|| bad(format!("unknown variant `{v}`")))?,
+                None => crate::net::Variant::Full,
+            };
+            crate::build_model_variant(&source, variant)?
+        }
+        ("random", _, Some(seed)) => crate::build_model(&crate::WeightsSource::Random(seed))?,
+        _ => return Err(bad("the manifest does not say where its weights came from".into())),
+    };
+    let (now, then) = (&model.manifest.weights, w);
+    let changed = now.sha256 != then.sha256
+        || now.files.iter().zip(&then.files).any(|(a, b)| a.sha256 != b.sha256)
+        || model.manifest.search.inputs != m.search.inputs;
+    if changed {
+        return Err(bad(format!(
+            "the source files the plan was compiled from have changed since (SHA-256 differs): {}",
+            then.files.iter().map(|f| f.path.as_str()).chain(then.path.as_deref()).collect::<Vec<_>>().join(", ")
+        )));
+    }
+    Ok(model)
+}

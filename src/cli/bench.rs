@@ -269,7 +269,7 @@ fn save_tensors(dir: &Path, plan: &Plan, z: &[f32], x: &[f32], zf: &TemplateFeat
     for (t, v) in m.template.outputs.iter().zip(zf.to_vecs()?) {
         put(&t.name, &t.shape, &v)?;
     }
-    for (t, v) in m.search.outputs.iter().zip([&out.loc, &out.cls1, &out.cls2]) {
+    for (t, v) in m.search.outputs.iter().zip(&out.outputs) {
         put(&t.name, &t.shape, v)?;
     }
     write_atomically(&dir.join("tensors.json"), &serde_json::to_vec_pretty(&index)?)?;

@@ -88,12 +88,9 @@ pub struct Fidelity {
     pub plan: String,
     /// Held-out search crops compared.
     pub crops: usize,
-    /// ‖out − ref‖ / ‖ref‖ of loc over all crops.
-    pub loc: f64,
-    /// The same for cls1.
-    pub cls1: f64,
-    /// The same for cls2.
-    pub cls2: f64,
+    /// Per search output (PRL-Track: loc, cls1, cls2; NanoTrack: cls, loc), its name and
+    /// ‖out − ref‖ / ‖ref‖ over all crops.
+    pub errors: Vec<(String, f64)>,
     /// Share of crops where the best cell (argmax of the penalised score) is the same.
     pub best_cell_agreement: f64,
 }
@@ -156,20 +153,34 @@ fn plan_size_mb(dir: &std::path::Path) -> anyhow::Result<f64> {
     Ok(bytes as f64 / 1e6)
 }
 
-/// Peak resident memory of `prl track` with `plan` on a few frames, in a child process of its own.
+/// Peak resident memory of `prl track` with `plan` on a few frames, in a child process of its
+/// own, read from the summary it writes as JSON (`prl track --json`).
 fn peak_rss(plan: &std::path::Path, seq: &std::path::Path, threads: usize) -> Option<f64> {
     let exe = std::env::current_exe().ok()?;
-    let out = std::process::Command::new(exe)
+    let tmp = tempfile_path("compare-rss");
+    let status = std::process::Command::new(exe)
         .args(["track", "--max-frames", "10", "--threads", &threads.to_string(), "--plan"])
         .arg(plan)
         .arg("--sequence")
         .arg(seq)
+        .arg("--json")
+        .arg(&tmp)
+        .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
-        .output()
+        .status()
         .ok()?;
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let line = stdout.lines().find_map(|l| l.strip_prefix("peak resident memory: "))?;
-    line.trim_end_matches(" MB").parse().ok()
+    let text = std::fs::read_to_string(&tmp).ok();
+    let _ = std::fs::remove_file(&tmp);
+    if !status.success() {
+        return None;
+    }
+    serde_json::from_str::<super::track::Summary>(&text?).ok()?.peak_rss_mb
+}
+
+/// A fresh path in the system's temporary folder.
+fn tempfile_path(what: &str) -> std::path::PathBuf {
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+    std::env::temp_dir().join(format!("prl-{what}-{}-{nanos}.json", std::process::id()))
 }
 
 pub fn run(a: CompareArgs) -> anyhow::Result<()> {
@@ -303,18 +314,17 @@ fn fidelity(a: &CompareArgs, seqs: &[Sequence], trackers: &mut [Tracker]) -> any
         bar.inc(1);
     }
     bar.finish_and_clear();
-    let flat =
-        |i: usize, f: fn(&SearchOutput) -> &Vec<f32>| -> Vec<f32> { outs[i].iter().flat_map(f).copied().collect() };
+    let flat = |i: usize, k: usize| -> Vec<f32> { outs[i].iter().flat_map(|o| &o.outputs[k]).copied().collect() };
+    let names: Vec<String> = trackers[0].plan().manifest().search.outputs.iter().map(|o| o.name.clone()).collect();
     Ok((1..n)
         .map(|i| {
-            let rel = |f: fn(&SearchOutput) -> &Vec<f32>| prl_compiler::relative_error(&flat(i, f), &flat(0, f)).0;
             let same = cells[i].iter().zip(&cells[0]).filter(|(a, b)| a == b).count();
             Fidelity {
                 plan: a.plans[i].display().to_string(),
                 crops: outs[i].len(),
-                loc: rel(|o| &o.loc),
-                cls1: rel(|o| &o.cls1),
-                cls2: rel(|o| &o.cls2),
+                errors: (names.iter().enumerate())
+                    .map(|(k, name)| (name.clone(), prl_compiler::relative_error(&flat(i, k), &flat(0, k)).0))
+                    .collect(),
                 best_cell_agreement: same as f64 / cells[0].len().max(1) as f64,
             }
         })
@@ -328,21 +338,12 @@ fn tracking(a: &CompareArgs, seqs: &[Sequence], trackers: &mut [Tracker]) -> any
         let gt = seq.groundtruth.as_ref().with_context(|| format!("{}: no ground truth", dir.display()))?;
         let count = a.max_frames.map_or(seq.frames.len(), |m| m.min(seq.frames.len()));
         let init = init_box_from_groundtruth(gt[0]);
-        let mut boxes: Vec<Vec<[f64; 4]>> = vec![vec![[init.x, init.y, init.w, init.h]]; trackers.len()];
-        let bar = super::progress_bar(count as u64, &format!("tracking {}", seq.name));
-        for (k, path) in seq.frames[..count].iter().enumerate() {
-            let f = load_frame(path)?;
-            for (i, tr) in trackers.iter_mut().enumerate() {
-                if k == 0 {
-                    tr.init(&f, init)?;
-                } else {
-                    let b = tr.track(&f).with_context(|| path.display().to_string())?.bbox;
-                    boxes[i].push([b.x, b.y, b.w, b.h]);
-                }
-            }
-            bar.inc(1);
+        let mut boxes: Vec<Vec<[f64; 4]>> = vec![];
+        for (i, tr) in trackers.iter_mut().enumerate() {
+            let msg = format!("tracking {} with {}", seq.name, a.plans[i].display());
+            let run = super::track::track_with_progress(tr, &seq.frames[..count], init, |_, _, _| Ok(()));
+            boxes.push(run.with_context(|| msg)?.xywh());
         }
-        bar.finish_and_clear();
         let plans = boxes
             .iter()
             .enumerate()

@@ -39,22 +39,19 @@ pub fn markdown(r: &Report) -> String {
     }
     if !r.fidelity.is_empty() {
         let _ = writeln!(s, "\n### Output fidelity against {} (held-out search crops)\n", reference.path);
-        let _ = writeln!(
-            s,
-            "| plan | crops | loc rel. error | cls1 rel. error | cls2 rel. error | same best cell | calibrated on |"
-        );
-        let _ = writeln!(s, "|---|---|---|---|---|---|---|");
+        let names: Vec<&str> = r.fidelity[0].errors.iter().map(|(n, _)| n.as_str()).collect();
+        let heads: String = names.iter().map(|n| format!(" {n} rel. error |")).collect();
+        let _ = writeln!(s, "| plan | crops |{heads} same best cell | calibrated on |");
+        let _ = writeln!(s, "|---|---|{}---|---|", "---|".repeat(names.len()));
         for (f, p) in r.fidelity.iter().zip(&r.plans[1..]) {
             let calib =
                 if p.calibration_sequences.is_empty() { "-".into() } else { p.calibration_sequences.join(", ") };
+            let errs: String = f.errors.iter().map(|(_, e)| format!(" {e:.4} |")).collect();
             let _ = writeln!(
                 s,
-                "| {} | {} | {:.4} | {:.4} | {:.4} | {:.1}% | {calib} |",
+                "| {} | {} |{errs} {:.1}% | {calib} |",
                 f.plan,
                 f.crops,
-                f.loc,
-                f.cls1,
-                f.cls2,
                 100.0 * f.best_cell_agreement
             );
         }

@@ -25,9 +25,10 @@ pub struct CompileArgs {
     /// modules become a seeded 3x3 stride-2 convolution; for latency studies (`prl bench`).
     #[arg(long, default_value = "full", value_parser = super::parse_variant, conflicts_with = "model")]
     variant: prl_compiler::net::Variant,
-    /// Tracker settings to store in the plan (TOML).
-    #[arg(long, value_name = "FILE", default_value = DEFAULT_TRACKER_TOML)]
-    tracker: PathBuf,
+    /// Tracker settings to store in the plan (TOML; default: the model's own, as `prl import`
+    /// records them, else `models/prl-track/tracker.toml`).
+    #[arg(long, value_name = "FILE")]
+    tracker: Option<PathBuf>,
     /// Plan directory to write.
     #[arg(long, default_value = "models/prl-track/plan")]
     out: PathBuf,
@@ -36,14 +37,37 @@ pub struct CompileArgs {
 /// Tracker settings from `path`; the official ones when the default file is absent.
 pub fn tracker_config(path: &Path) -> anyhow::Result<TrackerConfig> {
     match std::fs::read_to_string(path) {
-        Ok(text) => toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message())),
+        Ok(text) => {
+            let t: TrackerConfig =
+                toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
+            t.check().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            Ok(t)
+        }
         Err(_) if path == Path::new(DEFAULT_TRACKER_TOML) => Ok(TrackerConfig::default()),
         Err(e) => Err(anyhow::anyhow!("{}: {e}", path.display())),
     }
 }
 
+/// The settings a plan of `model` gets: those of `explicit` (a TOML file) when given, else the
+/// model's own (imported models carry them), else PRL-Track's file.
+pub fn settings_for(model: &BuiltModel, explicit: Option<&Path>) -> anyhow::Result<TrackerConfig> {
+    let t = match (explicit, &model.manifest.tracker) {
+        (Some(path), _) => tracker_config(path)?,
+        (None, Some(t)) => t.clone(),
+        (None, None) => tracker_config(Path::new(DEFAULT_TRACKER_TOML))?,
+    };
+    if let Some(own) = model.manifest.tracker.as_ref().filter(|own| own.family != t.family) {
+        anyhow::bail!(
+            "the settings are for a {} tracker, but the model is a {} ({})",
+            t.family.name(),
+            own.family.name(),
+            model.manifest.model
+        );
+    }
+    Ok(t)
+}
+
 pub fn run(a: CompileArgs) -> anyhow::Result<()> {
-    let tracker = tracker_config(&a.tracker)?;
     let model = match &a.model {
         Some(dir) => BuiltModel::read(dir)?,
         None => {
@@ -54,6 +78,7 @@ pub fn run(a: CompileArgs) -> anyhow::Result<()> {
             m?
         }
     };
+    let tracker = settings_for(&model, a.tracker.as_deref())?;
     let pb = spinner("compiling: tract declutters both graphs and writes them as NNEF");
     let plan = compile(&model, &tracker).and_then(|p| p.write(&a.out).map(|_| p));
     pb.finish_and_clear();

@@ -1,26 +1,34 @@
-//! `prl demo`: the whole pipeline on nothing but the program itself: a seeded network, compiled
-//! to a plan, tracking a textured target over a textured background in a generated video.
+//! `prl demo`: the whole pipeline on nothing but the program itself: a trained tracker
+//! (NanoTrack v2, shipped in `models/nanotrack-v2`) imported and compiled to a plan, tracking a
+//! textured target over a textured background in a generated video; or PRL-Track from a
+//! checkpoint or seeded weights.
 
 use std::path::PathBuf;
 
 use clap::Args;
 use prl_compiler::{build_model, compile, WeightsSource};
-use prl_runtime::{set_threads, BBox, Frame, PixelLayout, Plan, Tracker};
+use prl_runtime::{set_threads, Family, Frame, PixelLayout, Plan, Tracker};
+use prl_track::tracking::MadeFrames;
 
-use super::compile::{tracker_config, DEFAULT_TRACKER_TOML};
-use super::track::{results_text, track_frames};
+use super::compile::settings_for;
+use super::track::{track_with_progress, Summary};
 use super::{spinner, write_atomically, WeightsArgs};
 
 #[derive(Args)]
 pub struct DemoArgs {
+    /// The tracker: `nanotrack` (trained weights shipped with the toolchain) or `prl-track`
+    /// (needs --checkpoint for trained weights; seeded random weights otherwise). Default:
+    /// nanotrack, or prl-track when --checkpoint or --random-seed is given.
+    #[arg(long, value_parser = parse_family)]
+    family: Option<Family>,
     #[command(flatten)]
     weights: WeightsArgs,
     /// Frames to generate.
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = 60)]
     frames: usize,
-    /// Where the plan and the results go.
-    #[arg(long, default_value = "models/prl-track/demo")]
-    out: PathBuf,
+    /// Where the plan and the results go (default: `models/<model>/demo`).
+    #[arg(long)]
+    out: Option<PathBuf>,
     /// Threads for the network (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
@@ -72,18 +80,42 @@ fn frame(i: usize) -> Frame {
     Frame::from_raw(W, H, &rgb, PixelLayout::Rgb).expect("generated frame size")
 }
 
+fn parse_family(s: &str) -> Result<Family, String> {
+    Family::parse(s).ok_or_else(|| format!("`{s}` is not a tracker family; expected nanotrack or prl-track"))
+}
+
 pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.frames >= 2, "--frames must be at least 2");
     set_threads(a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())));
-    let source = a.weights.source_or(|| WeightsSource::Random(0));
-    let pb = spinner("building the network and compiling a plan");
-    let plan_dir = a.out.join("plan");
-    let built = build_model(&source)
-        .and_then(|m| compile(&m, &tracker_config(std::path::Path::new(DEFAULT_TRACKER_TOML)).unwrap_or_default()));
-    let written = built.and_then(|p| p.write(&plan_dir).map(|_| p));
+    let weights_given = a.weights.checkpoint.is_some() || a.weights.random_seed.is_some();
+    let family = a.family.unwrap_or(if weights_given { Family::PrlTrack } else { Family::Nanotrack });
+    if family == Family::Nanotrack && weights_given {
+        anyhow::bail!("--checkpoint and --random-seed are for --family prl-track; NanoTrack's weights ship with it");
+    }
+    let (built, what) = match family {
+        Family::Nanotrack => {
+            let pb = spinner("importing NanoTrack v2 (models/nanotrack-v2) and compiling a plan");
+            let m = super::import::import_nanotrack(None, None, None);
+            pb.finish_and_clear();
+            (m?, "NanoTrack v2, trained weights")
+        }
+        Family::PrlTrack => {
+            let source = a.weights.source_or(|| WeightsSource::Random(0));
+            let pb = spinner("building PRL-Track and compiling a plan");
+            let m = build_model(&source);
+            pb.finish_and_clear();
+            let random = matches!(source, WeightsSource::Random(_));
+            (m?, if random { "PRL-Track, RANDOM weights" } else { "PRL-Track, checkpoint weights" })
+        }
+    };
+    let out = a.out.clone().unwrap_or_else(|| PathBuf::from("models").join(&built.manifest.model).join("demo"));
+    let plan_dir = out.join("plan");
+    let tracker_settings = settings_for(&built, None)?;
+    let pb = spinner("compiling the plan");
+    let written = compile(&built, &tracker_settings).and_then(|p| p.write(&plan_dir).map(|_| p));
     pb.finish_and_clear();
     let plan = written?;
-    println!("plan: {} ({})", plan_dir.display(), plan.manifest.weights.note);
+    println!("plan: {} ({what}; {})", plan_dir.display(), plan.manifest.weights.note);
     let plan = Plan::load(&plan_dir)?;
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config);
@@ -93,32 +125,19 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         "tracking a generated {W}x{H} video of {} frames, target {TW}x{TH} starting at ({:.0}, {:.0})",
         a.frames, gt[0][0], gt[0][1]
     );
-    let (boxes, summary) = track_frames(
-        &mut tracker,
-        a.frames,
-        |i| Ok(frame(i)),
-        |i| format!("generated frame {}", i + 1),
-        init,
-        Some(&gt),
-        |_, _, _| Ok(()),
-    )?;
-    let results = a.out.join("results.txt");
-    write_atomically(&results, results_text(&boxes).as_bytes())?;
+    let frames = MadeFrames { count: a.frames, what: "generated", make: frame };
+    let run = track_with_progress(&mut tracker, frames, init, |_, _, _| Ok(()))?;
+    let results = out.join("results.txt");
+    write_atomically(&results, run.results_text().as_bytes())?;
     println!("results: {}", results.display());
-    summary.print();
-    let last: &BBox = boxes.last().expect("frames >= 2");
+    Summary::of(&run, Some(&gt)).print();
+    let last = run.boxes.last().expect("frames >= 2");
+    let g = gt[gt.len() - 1];
     println!(
         "last box: {:.1},{:.1},{:.1},{:.1}   truth: {:.1},{:.1},{:.1},{:.1}",
-        last.x,
-        last.y,
-        last.w,
-        last.h,
-        gt[gt.len() - 1][0],
-        gt[gt.len() - 1][1],
-        TW,
-        TH
+        last.x, last.y, last.w, last.h, g[0], g[1], g[2], g[3]
     );
-    if matches!(source, WeightsSource::Random(_)) {
+    if tracker.plan().manifest().weights.kind == "random" {
         println!("note: these are RANDOM weights. Everything ran end to end (build, compile, plan, crops, network, tracker), but an untrained network cannot track: the boxes drift. Give --checkpoint with the authors' trained weights to see it track.");
     }
     Ok(())

@@ -7,6 +7,7 @@ mod compare_report;
 mod compile;
 mod demo;
 mod eval;
+mod import;
 mod plots;
 mod quantize;
 mod run_benchmark;
@@ -29,6 +30,8 @@ struct Cli {
 enum Command {
     /// Emit template.onnx, search.onnx and manifest.json from a checkpoint or random weights.
     Build(build::BuildArgs),
+    /// Import a third-party Siamese tracker (NanoTrack) from its ONNX files into a model directory.
+    Import(import::ImportArgs),
     /// Run every stage with tract on golden tensors and compare with the official outputs.
     Verify(verify::VerifyArgs),
     /// Compile a model (or a checkpoint, or random weights) into a plan for the runtime.
@@ -76,6 +79,7 @@ impl WeightsArgs {
 pub fn run() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Build(a) => build::run(a),
+        Command::Import(a) => import::run(a),
         Command::Verify(a) => verify::run(a),
         Command::Compile(a) => compile::run(a),
         Command::Track(a) => track::run(a),

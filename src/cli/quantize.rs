@@ -4,11 +4,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::bail;
 use clap::Args;
-use prl_compiler::{compile_int8, BuiltModel, Method, PerChannel, QuantizeOptions, WeightsSource};
+use prl_compiler::{compile_int8, BuiltModel, Method, PerChannel, QuantizeOptions};
 use prl_runtime::{LayerDecision, QuantizationInfo, TrackerConfig, PLAN_MANIFEST};
 use prl_track::CalibrationSpec;
 
-use super::compile::{tracker_config, DEFAULT_TRACKER_TOML};
+use super::compile::settings_for;
 
 #[derive(Args)]
 pub struct QuantizeArgs {
@@ -19,9 +19,10 @@ pub struct QuantizeArgs {
     /// A model directory written by `prl build`, instead of a plan (tracker settings from --tracker).
     #[arg(long, value_name = "DIR")]
     model: Option<PathBuf>,
-    /// Tracker settings for a plan made from --model (TOML).
-    #[arg(long, value_name = "FILE", default_value = DEFAULT_TRACKER_TOML, requires = "model")]
-    tracker: PathBuf,
+    /// Tracker settings for a plan made from --model (TOML; default: the model's own, else
+    /// PRL-Track's).
+    #[arg(long, value_name = "FILE", requires = "model")]
+    tracker: Option<PathBuf>,
     /// Calibration sequences (OTB/UAV123 layout, with ground truth); keep them apart from the
     /// sequences you evaluate on.
     #[arg(long, value_name = "SEQ_DIR", num_args = 1.., required = true)]
@@ -69,31 +70,14 @@ fn parse_per_channel(s: &str) -> Result<PerChannel, String> {
     PerChannel::parse(s).ok_or_else(|| format!("`{s}` is not a setting; expected auto, on or off"))
 }
 
-/// The fp32 model a plan was compiled from, rebuilt from the weights its manifest records.
+/// The fp32 model a plan was compiled from, rebuilt from the sources its manifest records.
 fn model_of_plan(dir: &Path) -> anyhow::Result<(BuiltModel, TrackerConfig)> {
     let path = dir.join(PLAN_MANIFEST);
     let m = super::read_plan_manifest(dir)?;
     if m.precision != "fp32" {
         bail!("{}: the plan is already {}; quantise an fp32 plan", path.display(), m.precision);
     }
-    let source = match (m.weights.kind.as_str(), &m.weights.path, m.weights.seed) {
-        ("checkpoint", Some(p), _) => WeightsSource::Checkpoint(p.into()),
-        ("random", _, Some(seed)) => WeightsSource::Random(seed),
-        _ => bail!("{}: the manifest does not say where its weights came from", path.display()),
-    };
-    let variant = match &m.variant {
-        Some(v) => super::parse_variant(v).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?,
-        None => prl_compiler::net::Variant::Full,
-    };
-    let model = prl_compiler::build_model_variant(&source, variant)?;
-    if model.manifest.weights.sha256 != m.weights.sha256 {
-        bail!(
-            "{}: the checkpoint {:?} has changed since the plan was compiled (SHA-256 differs)",
-            path.display(),
-            m.weights.path
-        );
-    }
-    Ok((model, m.tracker))
+    Ok((prl_compiler::rebuild_model(&m, &path)?, m.tracker))
 }
 
 pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
@@ -101,7 +85,11 @@ pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
         bail!("--frames-per-seq must be at least 1");
     }
     let (model, tracker) = match &a.model {
-        Some(dir) => (BuiltModel::read(dir)?, tracker_config(&a.tracker)?),
+        Some(dir) => {
+            let model = BuiltModel::read(dir)?;
+            let tracker = settings_for(&model, a.tracker.as_deref())?;
+            (model, tracker)
+        }
         None => {
             let pb = super::spinner(&format!("rebuilding the network of {}", a.plan.display()));
             let r = model_of_plan(&a.plan);
@@ -139,7 +127,8 @@ pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
     pb.finish_and_clear();
     let plan = plan?;
     let info = plan.manifest.quantization.as_ref().expect("an int8 plan records its quantisation");
-    print_report(info);
+    let outputs: Vec<&str> = plan.manifest.search.outputs.iter().map(|o| o.name.as_str()).collect();
+    print_report(info, &outputs.join("/"));
     let mb = (plan.template.len() + plan.search.len()) as f64 / 1e6;
     println!(
         "wrote int8 plan {} ({mb:.1} MB; calibrated on {})",
@@ -153,8 +142,12 @@ fn range(r: (f32, f32)) -> String {
     format!("[{:.3}, {:.3}]", r.0, r.1)
 }
 
-/// The per-layer table of a quantisation.
-pub fn print_report(info: &QuantizationInfo) {
+fn slash(v: &[f64]) -> String {
+    v.iter().map(|x| format!("{x:.4}")).collect::<Vec<_>>().join("/")
+}
+
+/// The per-layer table of a quantisation; `outputs` names the search outputs (`loc/cls1/cls2`).
+pub fn print_report(info: &QuantizationInfo, outputs: &str) {
     println!(
         "quantised with {} ranges, per-channel {}, on {} search crops of {} sequence(s)",
         info.method,
@@ -173,10 +166,10 @@ pub fn print_report(info: &QuantizationInfo) {
         "w err",
         "input range",
         "output range",
-        if sens { "  sensitivity loc/cls1/cls2" } else { "" }
+        if sens { format!("  sensitivity {outputs}") } else { String::new() }
     );
     for l in &info.layers {
-        let s = l.sensitivity.map(|s| format!("  {:.4}/{:.4}/{:.4}", s[0], s[1], s[2])).unwrap_or_default();
+        let s = l.sensitivity.as_ref().map(|s| format!("  {}", slash(s))).unwrap_or_default();
         println!(
             "{:<36} {:>10} {:>7.1} {:<27} {:>5} {:>8.4}  {:<20} {:<20}{s}",
             l.node,

@@ -5,14 +5,12 @@
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
-use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
 use prl_runtime::{set_threads, Plan, Tracker};
-use prl_track::{init_box_from_groundtruth, load_frame, Dataset, Format, Video};
+use prl_track::{init_box_from_groundtruth, tracking, Dataset, Format, Video};
 
-use super::track::results_text;
 use super::write_atomically;
 
 #[derive(Args)]
@@ -65,7 +63,8 @@ fn complete(path: &Path, v: &Video) -> bool {
         .unwrap_or(false)
 }
 
-/// Track one video; returns its boxes and the seconds each frame took.
+/// Track one video; returns its results text and the seconds each frame's tracking took
+/// (frame decoding excluded).
 fn track_video(
     tracker: &mut Tracker,
     v: &Video,
@@ -73,22 +72,12 @@ fn track_video(
 ) -> anyhow::Result<(String, Vec<f64>)> {
     let n = v.groundtruth.len();
     anyhow::ensure!(v.frames.len() >= n, "video {}: {} frames for {} ground-truth boxes", v.name, v.frames.len(), n);
-    let mut boxes = Vec::with_capacity(n);
-    let mut times = Vec::with_capacity(n);
-    for (i, path) in v.frames[..n].iter().enumerate() {
-        let frame = load_frame(path)?;
-        let t = Instant::now();
-        if i == 0 {
-            let init = init_box_from_groundtruth(v.init);
-            tracker.init(&frame, init).with_context(|| format!("{}: init", path.display()))?;
-            boxes.push(init);
-        } else {
-            boxes.push(tracker.track(&frame).with_context(|| path.display().to_string())?.bbox);
-        }
-        times.push(t.elapsed().as_secs_f64());
+    let init = init_box_from_groundtruth(v.init);
+    let run = tracking::track(tracker, &v.frames[..n], init, |_, _, _| {
         progress.inc(1);
-    }
-    Ok((results_text(&boxes), times))
+        Ok(())
+    })?;
+    Ok((run.results_text(), run.timings.iter().map(|t| t.tracking().as_secs_f64()).collect()))
 }
 
 pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {

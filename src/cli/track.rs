@@ -1,12 +1,13 @@
 //! `prl track`: run a plan over a frame sequence.
 
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use prl_runtime::{set_threads, BBox, Frame, Plan, Prediction, Tracker};
-use prl_track::{init_box_from_groundtruth, iou, load_frame, InputError, Sequence};
+use prl_runtime::{set_threads, BBox, Frame, Plan, Tracker};
+use prl_track::tracking::{self, Frames, TrackRun};
+use prl_track::{init_box_from_groundtruth, InputError, Sequence};
 
 use super::write_atomically;
 
@@ -36,130 +37,83 @@ pub struct TrackArgs {
     /// Track only the first N frames.
     #[arg(long, value_name = "N")]
     max_frames: Option<usize>,
+    /// Write the run's summary (FPS, stage medians, mean IoU, peak memory) here as JSON.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
 }
 
 fn parse_init(s: &str) -> Result<[f64; 4], String> {
     prl_track::parse_box(s)
 }
 
-/// Per-stage times of a run and how the boxes compare with ground truth.
+/// Per-stage times of a run and how the boxes compare with ground truth (`--json` writes it).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Summary {
+    /// Frames tracked (the first included).
     pub frames: usize,
-    pub total: Duration,
-    pub decode: Vec<Duration>,
-    pub crop: Vec<Duration>,
-    pub network: Vec<Duration>,
-    pub post: Vec<Duration>,
+    /// Frames per second of the whole loop, frame decoding included.
+    pub fps: f64,
+    /// Median ms per frame of decoding, crop, network and post-processing.
+    pub decode_ms: f64,
+    /// Crop and resize.
+    pub crop_ms: f64,
+    /// The search network.
+    pub network_ms: f64,
+    /// Decoding of the outputs and the state update.
+    pub post_ms: f64,
+    /// Mean IoU with the ground truth, when known.
     pub mean_iou: Option<f64>,
-}
-
-fn median_ms(v: &[Duration]) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    let mut ms: Vec<f64> = v.iter().map(|d| d.as_secs_f64() * 1e3).collect();
-    ms.sort_by(f64::total_cmp);
-    ms[ms.len() / 2]
+    /// Peak resident memory of the process, MB.
+    pub peak_rss_mb: Option<f64>,
 }
 
 impl Summary {
+    pub fn of(run: &TrackRun, groundtruth: Option<&[[f64; 4]]>) -> Summary {
+        Summary {
+            frames: run.boxes.len(),
+            fps: run.boxes.len() as f64 / run.total.as_secs_f64(),
+            decode_ms: run.median_ms(|t| t.decode),
+            crop_ms: run.median_ms(|t| t.crop),
+            network_ms: run.median_ms(|t| t.network),
+            post_ms: run.median_ms(|t| t.post),
+            mean_iou: groundtruth.and_then(|g| run.mean_iou(g)),
+            peak_rss_mb: super::peak_rss_mb(),
+        }
+    }
+
     pub fn print(&self) {
-        println!(
-            "frames: {}   FPS: {:.1} (whole loop, frame decoding included)",
-            self.frames,
-            self.frames as f64 / self.total.as_secs_f64()
-        );
+        println!("frames: {}   FPS: {:.1} (whole loop, frame decoding included)", self.frames, self.fps);
         println!(
             "ms per frame (median): decode {:.1}, crop {:.1}, network {:.1}, post-processing {:.2}",
-            median_ms(&self.decode),
-            median_ms(&self.crop),
-            median_ms(&self.network),
-            median_ms(&self.post)
+            self.decode_ms, self.crop_ms, self.network_ms, self.post_ms
         );
         if let Some(iou) = self.mean_iou {
             println!("mean IoU with the ground truth: {iou:.3}");
         }
-        if let Some(mb) = super::peak_rss_mb() {
+        if let Some(mb) = self.peak_rss_mb {
             println!("peak resident memory: {mb:.0} MB");
         }
     }
 }
 
-/// Track `count` frames given by `frame(i)` from `init`; returns one box per frame (the init
-/// box first) and the summary. `label(i)` names frame `i` in errors; `on_frame` sees each frame
-/// and its box (for drawing).
-pub fn track_frames(
+/// [`prl_track::tracking::track`] behind a progress bar.
+pub fn track_with_progress(
     tracker: &mut Tracker,
-    count: usize,
-    mut frame: impl FnMut(usize) -> anyhow::Result<Frame>,
-    label: impl Fn(usize) -> String,
+    frames: impl Frames,
     init: BBox,
-    groundtruth: Option<&[[f64; 4]]>,
     mut on_frame: impl FnMut(usize, &Frame, &BBox) -> anyhow::Result<()>,
-) -> anyhow::Result<(Vec<BBox>, Summary)> {
-    let pb = indicatif::ProgressBar::new(count as u64);
+) -> anyhow::Result<TrackRun> {
+    let pb = indicatif::ProgressBar::new(frames.len() as u64);
     pb.set_style(
         indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
             .expect("static template"),
     );
-    let start = Instant::now();
-    let mut s = Summary {
-        frames: count,
-        total: Duration::ZERO,
-        decode: vec![],
-        crop: vec![],
-        network: vec![],
-        post: vec![],
-        mean_iou: None,
-    };
-    let mut boxes = Vec::with_capacity(count);
-    let mut size = (0, 0);
-    for i in 0..count {
-        let t = Instant::now();
-        let f = frame(i)?;
-        s.decode.push(t.elapsed());
-        if i == 0 {
-            size = (f.width(), f.height());
-            tracker.init(&f, init).with_context(|| label(i))?;
-            boxes.push(init);
-        } else {
-            if (f.width(), f.height()) != size {
-                anyhow::bail!(
-                    "{}: frame is {}x{}, the first frame {}x{}: frames of one sequence must have one size",
-                    label(i),
-                    f.width(),
-                    f.height(),
-                    size.0,
-                    size.1
-                );
-            }
-            let Prediction { bbox, .. } = tracker.track(&f).with_context(|| label(i))?;
-            let t = tracker.last_timings();
-            s.crop.push(t.crop);
-            s.network.push(t.network);
-            s.post.push(t.post);
-            boxes.push(bbox);
-        }
-        on_frame(i, &f, boxes.last().expect("pushed"))?;
+    let run = tracking::track(tracker, frames, init, |i, f, b| {
         pb.inc(1);
-    }
+        on_frame(i, f, b).map_err(|e| format!("{e:#}"))
+    });
     pb.finish_and_clear();
-    s.total = start.elapsed();
-    if let Some(gt) = groundtruth {
-        let ious: Vec<f64> = boxes
-            .iter()
-            .zip(gt)
-            .filter(|(_, g)| g[2] > 0.0 && g[3] > 0.0)
-            .map(|(b, g)| iou([b.x, b.y, b.w, b.h], *g))
-            .collect();
-        s.mean_iou = (!ious.is_empty()).then(|| ious.iter().sum::<f64>() / ious.len() as f64);
-    }
-    Ok((boxes, s))
-}
-
-/// Results in pysot's format: one `x,y,w,h` line per frame.
-pub fn results_text(boxes: &[BBox]) -> String {
-    boxes.iter().map(|b| format!("{},{},{},{}\n", b.x, b.y, b.w, b.h)).collect()
+    Ok(run?)
 }
 
 /// Draw `pred` (green) and `gt` (red) on a copy of the frame and save it as JPEG.
@@ -231,16 +185,17 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     }
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config);
-    let load = |i: usize| -> anyhow::Result<Frame> { Ok(load_frame(&frames[i])?) };
-    let label = |i: usize| frames[i].display().to_string();
-    let (boxes, summary) =
-        track_frames(&mut tracker, frames.len(), load, label, init, gt.as_deref(), |i, f, b| match &a.vis {
-            Some(dir) => save_vis(dir, i, f, b, gt.as_ref().and_then(|g| g.get(i).copied())),
-            None => Ok(()),
-        })?;
+    let run = track_with_progress(&mut tracker, frames.as_slice(), init, |i, f, b| match &a.vis {
+        Some(dir) => save_vis(dir, i, f, b, gt.as_ref().and_then(|g| g.get(i).copied())),
+        None => Ok(()),
+    })?;
     if let Some(path) = &a.results {
-        write_atomically(path, results_text(&boxes).as_bytes())?;
+        write_atomically(path, run.results_text().as_bytes())?;
         println!("results: {}", path.display());
+    }
+    let summary = Summary::of(&run, gt.as_deref());
+    if let Some(path) = &a.json {
+        write_atomically(path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     }
     summary.print();
     Ok(())

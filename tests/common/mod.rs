@@ -152,3 +152,39 @@ pub fn ok(o: &Output) -> String {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
+
+/// The shared UAV123@10fps sequence `name`, beside the reference fixture.
+pub fn sequence(name: &str) -> PathBuf {
+    golden_dir().join("../../data/uav123_10fps").join(name)
+}
+
+/// The NanoTrack v2 files shipped in the repository (`models/nanotrack-v2`).
+pub fn nanotrack_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/nanotrack-v2")
+}
+
+/// The official NanoTrack loop's boxes (`../shared/fixtures/nanotrack-v2-ref`, beside the PRL
+/// fixture; `$NANOTRACK_REF_DIR` points elsewhere).
+pub fn nanotrack_ref_dir() -> PathBuf {
+    let dir = std::env::var_os("NANOTRACK_REF_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| golden_dir().join("../nanotrack-v2-ref"));
+    assert!(dir.join("building4.txt").exists(), "NanoTrack reference not found at {} (set NANOTRACK_REF_DIR)", dir.display());
+    dir
+}
+
+/// NanoTrack v2 imported from the shipped files and compiled into an fp32 plan in `dir`.
+pub fn nanotrack_plan(dir: &std::path::Path) -> PathBuf {
+    let n = nanotrack_dir();
+    let model = prl_compiler::import_nanotrack(
+        &n.join("nanotrack_backbone_sim.onnx"),
+        &n.join("nanotrack_head_sim.onnx"),
+        Some(&n.join("configv2.yaml")),
+    )
+    .expect("import");
+    let tracker = model.manifest.tracker.clone().expect("imported models carry their settings");
+    let plan = prl_compiler::compile(&model, &tracker).expect("compile");
+    let out = dir.join("nanotrack-plan");
+    plan.write(&out).expect("write plan");
+    out
+}

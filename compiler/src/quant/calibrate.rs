@@ -6,15 +6,14 @@ use std::collections::HashMap;
 use tract_onnx::pb;
 
 use super::{Candidate, Kind, Observer};
-use crate::net::{self, TEMPLATE_INPUT};
 use crate::{BuiltModel, Error, OnnxRunner, Result, Tensor};
 
 /// Calibration crops: what the network sees while tracking, cut by the runtime's crop code.
 #[derive(Debug, Clone, Default)]
 pub struct Calibration {
-    /// Template crops `[1, 3, 127, 127]`, one per target.
+    /// Template crops `[1, 3, exemplar, exemplar]`, one per target.
     pub templates: Vec<Tensor>,
-    /// Search crops `[1, 3, 287, 287]`, each with the index of its target's template.
+    /// Search crops `[1, 3, instance, instance]`, each with the index of its target's template.
     pub searches: Vec<(usize, Tensor)>,
     /// Where they came from (recorded in the plan; crop counts are filled in from the data).
     pub info: prl_runtime::CalibrationInfo,
@@ -31,7 +30,7 @@ pub(crate) struct Stats {
 /// Template features (the search graph's inputs after `x`) of the templates `wanted`, computed
 /// one template at a time: each is tens of megabytes.
 fn features_of(model: &BuiltModel, calib: &Calibration, wanted: &[usize]) -> Result<HashMap<usize, Vec<Tensor>>> {
-    let template = OnnxRunner::new(&model.template, "template graph", &[TEMPLATE_INPUT], None)?;
+    let template = OnnxRunner::new(&model.template, "template graph", &model.manifest.template.inputs, None)?;
     wanted.iter().map(|&t| Ok((t, template.run(&[&calib.templates[t]])?))).collect()
 }
 
@@ -55,21 +54,21 @@ pub(crate) fn observe(
     progress: &mut dyn FnMut(&str, usize, usize),
 ) -> Result<Stats> {
     check(calib)?;
-    let template = OnnxRunner::new(&model.template, "template graph", &[TEMPLATE_INPUT], None)?;
+    let template = OnnxRunner::new(&model.template, "template graph", &model.manifest.template.inputs, None)?;
     let mut names: Vec<&str> =
         cands.iter().flat_map(|c| [c.input.as_str(), c.output.as_str()].into_iter().chain(dynamic(c))).collect();
     names.sort();
     names.dedup();
-    let inputs = net::search_inputs();
+    let inputs = &model.manifest.search.inputs;
     // Graph inputs read directly by a layer are observed where they come from: the search crop
     // (backbone layer 1 reads it), the template features.
-    let crop_read = names.contains(&inputs[0].name);
-    let fed: Vec<usize> = (1..inputs.len()).filter(|&i| names.contains(&inputs[i].name)).collect();
+    let crop_read = names.contains(&inputs[0].name.as_str());
+    let fed: Vec<usize> = (1..inputs.len()).filter(|&i| names.contains(&inputs[i].name.as_str())).collect();
     names.retain(|n| !inputs.iter().any(|i| i.name == *n));
     if names.is_empty() {
         return Err(Error::Quantize(format!("search graph `{}`: nothing to quantise", graph.name)));
     }
-    let search = OnnxRunner::new(&model.search, "search graph (calibration)", &inputs, Some(&names))?;
+    let search = OnnxRunner::new(&model.search, "search graph (calibration)", inputs, Some(&names))?;
     let mut observers: HashMap<String, Observer> = HashMap::new();
     let mut shapes = HashMap::new();
     let mut done = 0;
@@ -130,9 +129,9 @@ impl<'a> Samples<'a> {
         self.crops.len()
     }
 
-    /// The search graph `onnx`'s outputs (loc, cls1, cls2) on every crop.
-    pub fn run(&self, onnx: &[u8]) -> Result<Vec<Vec<Tensor>>> {
-        let search = OnnxRunner::new(onnx, "search graph", &net::search_inputs(), None)?;
+    /// The search graph `onnx`'s outputs (PRL-Track: loc, cls1, cls2) on every crop.
+    pub fn run(&self, model: &BuiltModel, onnx: &[u8]) -> Result<Vec<Vec<Tensor>>> {
+        let search = OnnxRunner::new(onnx, "search graph", &model.manifest.search.inputs, None)?;
         self.crops
             .iter()
             .map(|(t, x)| {

@@ -208,7 +208,7 @@ pub fn quantize(
     if let Some(budget) = opts.budget {
         sensitivity(&template, model, calib, &params, &mut layers, opts.sensitivity_crops, progress)?;
         let mut ranked: Vec<usize> = (0..layers.len()).filter(|&i| layers[i].decision == LayerDecision::Int8).collect();
-        let score = |l: &QuantLayer| l.sensitivity.map_or(0.0, |s| s.iter().cloned().fold(0.0, f64::max));
+        let score = |l: &QuantLayer| l.sensitivity.as_ref().map_or(0.0, |s| s.iter().cloned().fold(0.0, f64::max));
         ranked.sort_by(|&a, &b| score(&layers[b]).total_cmp(&score(&layers[a])));
         for &i in ranked.iter().take(budget) {
             layers[i].decision = LayerDecision::KeptSensitive;
@@ -264,7 +264,7 @@ fn quantised_values(onnx: &pb::ModelProto, params: &HashMap<String, QParams>) ->
         .collect()
 }
 
-/// Quantise each int8-eligible layer alone and measure loc/cls1/cls2 against fp32.
+/// Quantise each int8-eligible layer alone and measure each search output against fp32.
 fn sensitivity(
     onnx: &pb::ModelProto,
     model: &BuiltModel,
@@ -275,18 +275,18 @@ fn sensitivity(
     progress: &mut dyn FnMut(&str, usize, usize),
 ) -> Result<()> {
     let samples = calibrate::Samples::spread(model, calib, crops)?;
-    let reference = samples.run(&model.search)?;
+    let reference = samples.run(model, &model.search)?;
     let todo: Vec<usize> = (0..layers.len()).filter(|&i| layers[i].decision == LayerDecision::Int8).collect();
     for (done, &i) in todo.iter().enumerate() {
         progress("sensitivity", done, todo.len());
         let mut one = onnx.clone();
         let chosen = chosen_layers(layers, Some(&layers[i].node));
         rewrite::rewrite(one.graph.as_mut().expect("a graph"), &chosen, params)?;
-        let outs = samples.run(&one.encode_to_vec())?;
-        let mut err = [0f64; 3];
+        let outs = samples.run(model, &one.encode_to_vec())?;
+        let mut err = vec![0f64; reference.first().map_or(0, Vec::len)];
         for (o, r) in outs.iter().zip(&reference) {
-            for k in 0..3 {
-                err[k] += relative_error(&o[k].data, &r[k].data).0 / samples.len() as f64;
+            for (k, e) in err.iter_mut().enumerate() {
+                *e += relative_error(&o[k].data, &r[k].data).0 / samples.len() as f64;
             }
         }
         layers[i].sensitivity = Some(err);

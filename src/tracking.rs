@@ -1,0 +1,200 @@
+//! The one tracking loop every command and example uses: frames in, per-frame boxes, scores and
+//! stage timings out, with the same checks everywhere (frames of one sequence have one size,
+//! errors name the frame).
+
+use std::time::{Duration, Instant};
+
+use prl_runtime::{BBox, Frame, Tracker};
+
+use crate::{iou, load_frame, InputError};
+
+/// Where one frame's time went.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct FrameTiming {
+    /// Reading and decoding the frame.
+    pub decode: Duration,
+    /// Cutting and resizing the crop.
+    pub crop: Duration,
+    /// The template graph (first frame) or the search graph.
+    pub network: Duration,
+    /// Decoding the outputs and updating the state.
+    pub post: Duration,
+}
+
+impl FrameTiming {
+    /// The tracker's part of the frame (crop, network, post-processing; decoding excluded).
+    pub fn tracking(&self) -> Duration {
+        self.crop + self.network + self.post
+    }
+}
+
+/// What a run over a sequence gave: one entry per frame, the first frame's being the init box
+/// (score 1, as pysot writes it) and its template step.
+#[derive(Debug, Clone, Default)]
+pub struct TrackRun {
+    /// The target's box per frame.
+    pub boxes: Vec<BBox>,
+    /// The tracker's score per frame.
+    pub scores: Vec<f64>,
+    /// Stage times per frame.
+    pub timings: Vec<FrameTiming>,
+    /// Wall time of the whole run.
+    pub total: Duration,
+}
+
+/// Why a run stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum TrackError {
+    /// A frame could not be read.
+    #[error(transparent)]
+    Frame(#[from] InputError),
+    /// The tracker refused a frame or the box.
+    #[error("{label}: {source}")]
+    Tracker {
+        /// The frame.
+        label: String,
+        /// What the runtime said.
+        source: prl_runtime::Error,
+    },
+    /// A frame's size differs from the first frame's.
+    #[error("{label}: frame is {got_w}x{got_h}, the first frame {w}x{h}: frames of one sequence must have one size")]
+    Size {
+        /// The frame.
+        label: String,
+        /// Its width.
+        got_w: usize,
+        /// Its height.
+        got_h: usize,
+        /// The first frame's width.
+        w: usize,
+        /// The first frame's height.
+        h: usize,
+    },
+    /// The caller's per-frame hook failed (writing a visualisation, say).
+    #[error("{0}")]
+    Hook(String),
+}
+
+/// Frames of a sequence, by index.
+pub trait Frames {
+    /// How many.
+    fn len(&self) -> usize;
+    /// Whether there are none.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Frame `i`, decoded.
+    fn frame(&mut self, i: usize) -> Result<Frame, InputError>;
+    /// Frame `i`'s name in errors (its file).
+    fn label(&self, i: usize) -> String;
+}
+
+/// Frame files, decoded as OpenCV does.
+impl Frames for &[std::path::PathBuf] {
+    fn len(&self) -> usize {
+        <[std::path::PathBuf]>::len(self)
+    }
+    fn frame(&mut self, i: usize) -> Result<Frame, InputError> {
+        load_frame(&self[i])
+    }
+    fn label(&self, i: usize) -> String {
+        self[i].display().to_string()
+    }
+}
+
+/// Frames made by a function (generated video), labelled `"<what> frame N"`.
+pub struct MadeFrames<F> {
+    /// How many.
+    pub count: usize,
+    /// What they are, for labels.
+    pub what: &'static str,
+    /// Frame `i`.
+    pub make: F,
+}
+
+impl<F: FnMut(usize) -> Frame> Frames for MadeFrames<F> {
+    fn len(&self) -> usize {
+        self.count
+    }
+    fn frame(&mut self, i: usize) -> Result<Frame, InputError> {
+        Ok((self.make)(i))
+    }
+    fn label(&self, i: usize) -> String {
+        format!("{} frame {}", self.what, i + 1)
+    }
+}
+
+/// Track through `frames` from `init` on the first. `on_frame(i, frame, box)` sees every frame
+/// and its box as it goes (for drawing or progress); an error from it stops the run.
+pub fn track(
+    tracker: &mut Tracker,
+    mut frames: impl Frames,
+    init: BBox,
+    mut on_frame: impl FnMut(usize, &Frame, &BBox) -> Result<(), String>,
+) -> Result<TrackRun, TrackError> {
+    let start = Instant::now();
+    let n = frames.len();
+    let mut run = TrackRun {
+        boxes: Vec::with_capacity(n),
+        scores: Vec::with_capacity(n),
+        timings: Vec::with_capacity(n),
+        total: Duration::ZERO,
+    };
+    let mut size = (0, 0);
+    for i in 0..n {
+        let t = Instant::now();
+        let f = frames.frame(i)?;
+        let decode = t.elapsed();
+        let err = |source| TrackError::Tracker { label: frames.label(i), source };
+        if i == 0 {
+            size = (f.width(), f.height());
+            tracker.init(&f, init).map_err(err)?;
+            run.boxes.push(init);
+            run.scores.push(1.0);
+        } else {
+            if (f.width(), f.height()) != size {
+                let (got_w, got_h) = (f.width(), f.height());
+                return Err(TrackError::Size { label: frames.label(i), got_w, got_h, w: size.0, h: size.1 });
+            }
+            let p = tracker.track(&f).map_err(err)?;
+            run.boxes.push(p.bbox);
+            run.scores.push(p.score);
+        }
+        let s = tracker.last_timings();
+        run.timings.push(FrameTiming { decode, crop: s.crop, network: s.network, post: s.post });
+        on_frame(i, &f, run.boxes.last().expect("pushed")).map_err(TrackError::Hook)?;
+    }
+    run.total = start.elapsed();
+    Ok(run)
+}
+
+impl TrackRun {
+    /// Mean IoU with `groundtruth` over the frames whose truth has a positive size.
+    pub fn mean_iou(&self, groundtruth: &[[f64; 4]]) -> Option<f64> {
+        let ious: Vec<f64> = (self.boxes.iter().zip(groundtruth))
+            .filter(|(_, g)| g[2] > 0.0 && g[3] > 0.0)
+            .map(|(b, g)| iou([b.x, b.y, b.w, b.h], *g))
+            .collect();
+        (!ious.is_empty()).then(|| ious.iter().sum::<f64>() / ious.len() as f64)
+    }
+
+    /// The boxes as `[x, y, w, h]`.
+    pub fn xywh(&self) -> Vec<[f64; 4]> {
+        self.boxes.iter().map(|b| [b.x, b.y, b.w, b.h]).collect()
+    }
+
+    /// Results in pysot's format: one `x,y,w,h` line per frame.
+    pub fn results_text(&self) -> String {
+        self.boxes.iter().map(|b| format!("{},{},{},{}\n", b.x, b.y, b.w, b.h)).collect()
+    }
+
+    /// Median of one stage over the frames after the first (the tracking steps), in ms.
+    pub fn median_ms(&self, stage: impl Fn(&FrameTiming) -> Duration) -> f64 {
+        let mut ms: Vec<f64> = self.timings.iter().skip(1).map(|t| stage(t).as_secs_f64() * 1e3).collect();
+        if ms.is_empty() {
+            return 0.0;
+        }
+        ms.sort_by(f64::total_cmp);
+        ms[ms.len() / 2]
+    }
+}

@@ -1,0 +1,116 @@
+//! NanoTrack v2 through the toolchain: import of the shipped ONNX files, the official tracker
+//! loop's boxes on real footage, and import errors.
+
+mod common;
+
+use std::path::Path;
+
+use prl_runtime::{Family, Plan, Tracker};
+use prl_track::{init_box_from_groundtruth, tracking, Sequence};
+
+fn read_boxes(path: &Path) -> Vec<[f64; 4]> {
+    prl_track::parse_boxes(path).unwrap()
+}
+
+#[test]
+fn shipped_files_are_the_shared_model() {
+    use sha2::{Digest, Sha256};
+    let shared = common::golden_dir().join("../../models/nanotrack-v2");
+    for f in ["nanotrack_backbone_sim.onnx", "nanotrack_head_sim.onnx", "configv2.yaml", "LICENSE"] {
+        let a = Sha256::digest(std::fs::read(common::nanotrack_dir().join(f)).unwrap());
+        let b = Sha256::digest(std::fs::read(shared.join(f)).unwrap());
+        assert_eq!(a, b, "{f}");
+    }
+}
+
+#[test]
+fn fp32_plan_reproduces_the_official_tracker_on_building4() {
+    let tmp = tempfile::tempdir().unwrap();
+    let plan_dir = common::nanotrack_plan(tmp.path());
+    let plan = Plan::load(&plan_dir).unwrap();
+    let m = plan.manifest();
+    assert_eq!((m.tracker.family, m.model.as_str()), (Family::Nanotrack, "nanotrack-v2"));
+    assert_eq!(m.tracker, prl_runtime::TrackerConfig::nanotrack());
+    let names: Vec<&str> = m.search.outputs.iter().map(|o| o.name.as_str()).collect();
+    assert_eq!(names, ["cls", "loc"]);
+    let config = m.tracker.clone();
+    let mut tracker = Tracker::new(plan, config);
+    let seq = Sequence::open(&common::sequence("building4")).unwrap();
+    let gt = seq.groundtruth.clone().unwrap();
+    let run = tracking::track(&mut tracker, seq.frames.as_slice(), init_box_from_groundtruth(gt[0]), |_, _, _| Ok(()))
+        .unwrap();
+    let reference = read_boxes(&common::nanotrack_ref_dir().join("building4.txt"));
+    assert_eq!(run.boxes.len(), reference.len());
+    let ours = run.xywh();
+    let within = ours.iter().zip(&reference).filter(|(a, b)| a.iter().zip(*b).all(|(x, y)| (x - y).abs() <= 0.5)).count();
+    let worst = ours.iter().zip(&reference).map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)).fold(0.0, f64::max);
+    eprintln!("building4: {within}/{} frames within 0.5 px, worst {worst:.4} px", reference.len());
+    assert!(within as f64 >= 0.99 * reference.len() as f64, "{within} of {} frames within 0.5 px", reference.len());
+    // A trained tracker really tracks: most frames overlap the ground truth.
+    let miou = run.mean_iou(&gt).unwrap();
+    assert!(miou > 0.5, "mean IoU with the ground truth {miou}");
+}
+
+fn import_err(backbone: &Path, head: &Path, config: Option<&Path>) -> String {
+    let e = prl_compiler::import_nanotrack(backbone, head, config).unwrap_err().to_string();
+    assert!(!e.contains('\n'), "one line: {e}");
+    e
+}
+
+#[test]
+fn import_errors_name_the_file_and_the_problem() {
+    let n = common::nanotrack_dir();
+    let (backbone, head) = (n.join("nanotrack_backbone_sim.onnx"), n.join("nanotrack_head_sim.onnx"));
+    // The head where the backbone should be.
+    let e = import_err(&head, &head, None);
+    assert!(e.starts_with(&head.display().to_string()) && e.contains("is it the head?"), "{e}");
+    // The backbone where the head should be.
+    let e = import_err(&backbone, &backbone, None);
+    assert!(e.contains("expected 2 and 2") && e.contains("is it the backbone?"), "{e}");
+    // A truncated file.
+    let tmp = tempfile::tempdir().unwrap();
+    let cut = tmp.path().join("cut.onnx");
+    let bytes = std::fs::read(&backbone).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
+    let e = import_err(&cut, &head, None);
+    assert!(e.starts_with(&cut.display().to_string()) && e.contains("not an ONNX model"), "{e}");
+    // Not a file at all.
+    let e = import_err(&tmp.path().join("absent.onnx"), &head, None);
+    assert!(e.contains("absent.onnx"), "{e}");
+    // A config whose score map disagrees with the model's output.
+    let cfg = tmp.path().join("config.yaml");
+    let yaml = std::fs::read_to_string(n.join("configv2.yaml")).unwrap().replace("CONTEXT_AMOUNT: 0.5", "CONTEXT_AMOUNT: 0.5\n    OUTPUT_SIZE: 25");
+    std::fs::write(&cfg, yaml).unwrap();
+    let e = import_err(&backbone, &head, Some(&cfg));
+    assert!(e.starts_with(&cfg.display().to_string()) && e.contains("25x25") && e.contains("16x16"), "{e}");
+    // A config whose search crop the head cannot take (its correlation is tied to 16x16).
+    let yaml = std::fs::read_to_string(n.join("configv2.yaml")).unwrap().replace("INSTANCE_SIZE: 255", "INSTANCE_SIZE: 287");
+    std::fs::write(&cfg, yaml).unwrap();
+    let e = import_err(&backbone, &head, Some(&cfg));
+    assert!(e.starts_with(&cfg.display().to_string()) && e.contains("287x287") && e.contains("[1, 48, 18, 18]"), "{e}");
+}
+
+#[test]
+fn cli_imports_compiles_and_tracks() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (model, plan) = (tmp.path().join("model"), tmp.path().join("plan"));
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let out = common::ok(&common::prl(&["import", "nanotrack", "--out", &s(&model)]));
+    assert!(out.contains("cls [1, 2, 16, 16], loc [1, 4, 16, 16]"), "{out}");
+    let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(model.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(manifest["tracker"]["family"], "nanotrack");
+    assert_eq!(manifest["weights"]["kind"], "onnx");
+    assert_eq!(manifest["weights"]["files"].as_array().unwrap().len(), 2);
+    common::ok(&common::prl(&["compile", "--model", &s(&model), "--out", &s(&plan)]));
+    let json = tmp.path().join("summary.json");
+    let seq = common::sequence("wakeboard7");
+    let out = common::ok(&common::prl(&["track", "--plan", &s(&plan), "--sequence", &s(&seq), "--max-frames", "20", "--json", &s(&json)]));
+    assert!(out.contains("mean IoU"), "{out}");
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(summary["frames"], 20);
+    assert!(summary["peak_rss_mb"].as_f64().unwrap() > 10.0);
+    // PRL-Track settings on a NanoTrack model are refused.
+    let o = common::prl(&["compile", "--model", &s(&model), "--tracker", "models/prl-track/tracker.toml", "--out", &s(&plan)]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("the model is a nanotrack"));
+}
