@@ -50,6 +50,10 @@ pub struct QuantizeArgs {
     /// Layers with fewer multiply-adds per frame stay f32.
     #[arg(long, value_name = "MACS", default_value_t = QuantizeOptions::default().min_macs)]
     min_macs: u64,
+    /// Convolutions with fewer output channels stay f32 (tract's int8 convolution pays an
+    /// im2col and zero-point sums per input element, which few output channels do not amortise).
+    #[arg(long, value_name = "N", default_value_t = QuantizeOptions::default().min_out_channels)]
+    min_out_channels: usize,
     /// Also quantise products of two activations (HMG's attention); measured no faster than
     /// f32 today, since both sides are quantised every frame.
     #[arg(long)]
@@ -111,6 +115,7 @@ pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
         keep_fp32: a.keep_fp32.clone(),
         budget: a.budget,
         min_macs: a.min_macs,
+        min_out_channels: a.min_out_channels,
         act_matmul: a.act_matmul,
         ..QuantizeOptions::default()
     };

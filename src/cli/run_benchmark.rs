@@ -27,8 +27,9 @@ pub struct RunBenchmarkArgs {
     /// Results go to `DIR/<dataset>/<tracker>/<video>.txt`.
     #[arg(long, value_name = "DIR", default_value = "results")]
     results: PathBuf,
-    /// Tracker name for the results folder (default: `prl-track-<precision>`, with the variant
-    /// when the plan is an ablation variant).
+    /// Tracker name for the results folder (default: `<model>-<precision>`, such as
+    /// `prl-track-fp32` or `nanotrack-v2-int8`, with the variant when the plan is an ablation
+    /// variant).
     #[arg(long)]
     tracker: Option<String>,
     /// Videos tracked at once, each with its own copy of the plan (default: one per core, which
@@ -87,8 +88,8 @@ pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
     let manifest = super::read_plan_manifest(&a.plan)?;
     let tracker_name = match (&a.tracker, &manifest.variant) {
         (Some(t), _) => t.clone(),
-        (None, Some(v)) => format!("prl-track-{}-{v}", manifest.precision),
-        (None, None) => format!("prl-track-{}", manifest.precision),
+        (None, Some(v)) => format!("{}-{}-{v}", manifest.model, manifest.precision),
+        (None, None) => format!("{}-{}", manifest.model, manifest.precision),
     };
     let out = a.results.join(&dataset.name).join(&tracker_name);
     std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create", out.display()))?;

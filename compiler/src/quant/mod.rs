@@ -214,6 +214,18 @@ pub fn quantize(
             layers[i].decision = LayerDecision::KeptSensitive;
         }
     }
+    if !layers.iter().any(|l| l.decision == LayerDecision::Int8) {
+        let small = layers.iter().filter(|l| matches!(l.decision, LayerDecision::TooSmall | LayerDecision::FewChannels));
+        return Err(Error::Quantize(format!(
+            "no layer would be int8: of {} candidates, {} are under the thresholds (min-macs {}, min-out-channels {}) \
+             and the others are kept f32; lower the thresholds for a small network (NanoTrack: --min-macs 1000000 \
+             --min-out-channels 16) or keep fewer layers",
+            layers.len(),
+            small.count(),
+            opts.min_macs,
+            opts.min_out_channels
+        )));
+    }
     let chosen = chosen_layers(&layers, None);
     let mut onnx = template;
     rewrite::rewrite(onnx.graph.as_mut().expect("checked above"), &chosen, &params)?;
