@@ -65,6 +65,22 @@ impl ConvShape {
     }
 }
 
+/// Write one input `row`, padded row `yp` with `pad_left` columns of padding before it, into
+/// the four phases (`[row parity][column parity][hq][wq]`) of a plane padded for stride 2:
+/// even and odd columns each go to one phase row as a contiguous run.
+pub(crate) fn scatter_row_s2(phases: &mut [f32], row: &[f32], yp: usize, pad_left: usize, hq: usize, wq: usize) {
+    let row_of = |parity: usize| ((yp % 2) * 2 + parity) * hq * wq + (yp / 2) * wq;
+    let p = pad_left;
+    for (first, parity, col) in [(0, p & 1, p >> 1), (1, (p + 1) & 1, (p + 1) >> 1)] {
+        if first >= row.len() {
+            continue;
+        }
+        let at = row_of(parity) + col;
+        let dst = &mut phases[at..at + (row.len() - first).div_ceil(2)];
+        dst.iter_mut().zip(row[first..].iter().step_by(2)).for_each(|(d, &v)| *d = v);
+    }
+}
+
 /// `out[n,o,y,x] = bias[o] + Σ_{c,i,j} pad(input)[n,c,y+i,x+j]·weight[o,c,i,j]`, stride 1, with
 /// the weights packed `[o / 8][(c,i,j)][o % 8]` when the op is made (taps `(c,i,j)` whose
 /// weights are all zero left out).
@@ -166,11 +182,8 @@ impl EvalOp for PackedConv {
                             padded[at..at + w].copy_from_slice(row);
                             continue;
                         }
-                        for (x, &v) in row.iter().enumerate() {
-                            let xp = x + s.pad[1];
-                            let phase = (c * s.stride + yp % s.stride) * s.stride + xp % s.stride;
-                            padded[(phase * hq + yp / s.stride) * wq + xp / s.stride] = v;
-                        }
+                        let phases = &mut padded[c * 4 * hq * wq..(c + 1) * 4 * hq * wq];
+                        scatter_row_s2(phases, row, yp, s.pad[1], hq, wq);
                     }
                 }
                 par_chunks(dst, ROWS * plane, |b, out| {

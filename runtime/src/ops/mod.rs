@@ -1,6 +1,7 @@
 //! Operators of our own that tract runs in place of its generic ones where they are faster
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
-//! ([`DepthwiseXCorr`]), convolutions ([`PackedConv`], stride 1 or 2, and [`PackedQConv`] for int8
+//! ([`DepthwiseXCorr`]), convolutions ([`PackedConv`], stride 1 or 2, and [`DepthwiseConv`] for
+//! depthwise ones with constant weights, and [`PackedQConv`] for int8
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some), max pooling
 //! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
 //! norms ([`LayerNormCore`]), linear layers ([`ConstMatMul`]) and broadcast products and sums
@@ -11,6 +12,7 @@ mod attention;
 mod binary;
 mod conv;
 mod conv_kernel;
+mod dwconv;
 mod matmul;
 mod norm;
 mod pool;
@@ -23,6 +25,7 @@ mod xcorr_kernel;
 pub use attention::{AttnMix, AttnScores, RowSoftmax};
 pub use binary::{Binary, BroadcastBinary};
 pub use conv::{ConvShape, PackedConv};
+pub use dwconv::DepthwiseConv;
 pub use matmul::ConstMatMul;
 pub use norm::LayerNormCore;
 pub use pool::ChannelMaxPool;
@@ -38,6 +41,8 @@ pub struct Accelerated {
     pub correlations: usize,
     /// Convolutions made [`PackedConv`].
     pub convolutions: usize,
+    /// Depthwise convolutions with constant weights made [`DepthwiseConv`].
+    pub depthwise: usize,
     /// Max pools made [`ChannelMaxPool`].
     pub pools: usize,
     /// Quantised (u8 x i8) convolutions made [`PackedQConv`].
@@ -61,6 +66,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         // A packed convolution holds its weights and bias: it reads only the data input.
         let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = conv::packed(model, node)? {
             done.convolutions += 1;
+            (Box::new(op), tvec![node.inputs[0]])
+        } else if let Some(op) = dwconv::depthwise(model, node)? {
+            done.depthwise += 1;
             (Box::new(op), tvec![node.inputs[0]])
         } else if let Some(op) = qconv::packed_q(model, node)? {
             done.int8_convolutions += 1;

@@ -1,0 +1,379 @@
+//! Depthwise convolutions with constant weights (MobileNet's 3x3 and 5x5 layers, stride 1 or 2)
+//! as [`DepthwiseConv`], a direct per-channel convolution whose output rows are accumulated in
+//! 32-column register blocks.
+//!
+//! tract runs these as `DepthWiseConv`, a loop that reached 2-2.4 GFLOP/s on NanoTrack's early
+//! layers (16-72 channels of 64x64 to 128x128) and took half of its search step. Here each
+//! channel's plane is zero-padded once (as its phases with stride 2, so every tap reads
+//! consecutive inputs) and every output row is the sum over taps of a weight times a shifted
+//! input row; channels are spread over tract's thread pool.
+
+use std::sync::Arc;
+
+use tract_nnef::internal::*;
+use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
+use tract_nnef::tract_core::ops::nn::DataFormat;
+
+use super::conv::{scatter_row_s2, ConvShape};
+use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits};
+
+/// Output columns accumulated at once (two 16-lane registers on AVX-512).
+const BLOCK: usize = 32;
+
+/// Layers with fewer multiply-adds run on the calling thread alone (about 50 µs of work:
+/// waking the pool's threads costs a good part of that).
+const SERIAL_MACS: usize = 1 << 20;
+
+/// `out[n,c,y,x] = bias[c] + Σ_{i,j} pad(input)[n,c,s·y+i,s·x+j]·weight[c,0,i,j]`, stride `s`
+/// 1 or 2, zero padding: a depthwise convolution with constant weights.
+#[derive(Clone)]
+pub struct DepthwiseConv {
+    /// `ci == co` channels; the kernel is `kh` x `kw`.
+    shape: ConvShape,
+    /// The data has a batch axis (NCHW); else it is CHW (tract drops a batch axis of 1).
+    batch: bool,
+    weights: Arc<Vec<f32>>,
+    bias: Arc<Vec<f32>>,
+}
+
+impl std::fmt::Debug for DepthwiseConv {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "DepthwiseConv({:?})", self.shape)
+    }
+}
+
+impl PartialEq for DepthwiseConv {
+    fn eq(&self, other: &Self) -> bool {
+        self.shape == other.shape && self.batch == other.batch && same_bits(&self.weights, &other.weights) && same_bits(&self.bias, &other.bias)
+    }
+}
+
+impl Eq for DepthwiseConv {}
+
+impl DepthwiseConv {
+    /// A depthwise convolution of `shape` (`ci == co`) with weights `[c, 1, kh, kw]` row-major
+    /// and `bias` (one value or one per channel), on NCHW data (`batch`) or CHW.
+    pub fn new(shape: ConvShape, batch: bool, weight: &[f32], bias: &[f32]) -> TractResult<DepthwiseConv> {
+        let c = shape.ci;
+        ensure!(shape.co == c && matches!(shape.stride, 1 | 2), "DepthwiseConv: shape {shape:?}");
+        ensure!(weight.len() == c * shape.kh * shape.kw, "DepthwiseConv: {} weights for {shape:?}", weight.len());
+        ensure!(bias.len() == 1 || bias.len() == c, "DepthwiseConv: {} bias values for {shape:?}", bias.len());
+        let bias = (0..c).map(|o| if bias.len() == 1 { bias[0] } else { bias[o] }).collect();
+        Ok(DepthwiseConv { shape, batch, weights: Arc::new(weight.to_vec()), bias: Arc::new(bias) })
+    }
+
+    /// One channel: `src` `[h, w]` into `dst` `[oh, ow]`, with `scratch` for the padded phases.
+    fn channel(&self, ch: usize, src: &[f32], dst: &mut [f32], scratch: &mut Vec<f32>) {
+        let s = &self.shape;
+        let (hq, wq) = s.phase();
+        let st = s.stride;
+        scratch.clear();
+        scratch.resize(st * st * hq * wq + BLOCK, 0.0);
+        for (y, row) in src.chunks_exact(s.w).enumerate() {
+            let yp = y + s.pad[0];
+            if st == 1 {
+                let at = yp * wq + s.pad[1];
+                scratch[at..at + s.w].copy_from_slice(row);
+                continue;
+            }
+            scatter_row_s2(&mut scratch[..4 * hq * wq], row, yp, s.pad[1], hq, wq);
+        }
+        let (kh, kw) = (s.kh, s.kw);
+        let taps: Vec<(usize, f32)> = (0..kh)
+            .flat_map(|i| (0..kw).map(move |j| (i, j)))
+            .map(|(i, j)| ((((i % st) * st + j % st) * hq + i / st) * wq + j / st, self.weights[(ch * kh + i) * kw + j]))
+            .collect();
+        let (_, ow) = s.out();
+        kernel::rows(scratch, wq, &taps, self.bias[ch], dst, ow);
+    }
+}
+
+/// The row kernel, compiled for AVX-512, for AVX2 + FMA and generically; the CPU's best is
+/// chosen when run.
+mod kernel {
+    use super::BLOCK;
+
+    /// Every output row of one channel: `dst` (`ow` columns a row) is `bias` plus, for each tap
+    /// `(offset, weight)`, `weight` times the padded input from `offset` on (row `y` of the
+    /// output reads from `offset + y * wq`).
+    pub(super) fn rows(src: &[f32], wq: usize, taps: &[(usize, f32)], bias: f32, dst: &mut [f32], ow: usize) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if super::super::avx512_fma() {
+                // SAFETY: the CPU has AVX-512F, AVX2 and FMA (checked above).
+                return unsafe { rows_avx512(src, wq, taps, bias, dst, ow) };
+            }
+            if super::super::avx2_fma() {
+                // SAFETY: the CPU has AVX2 and FMA (checked above).
+                return unsafe { rows_avx2(src, wq, taps, bias, dst, ow) };
+            }
+        }
+        rows_generic::<false>(src, wq, taps, bias, dst, ow)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    pub(super) unsafe fn rows_avx512(src: &[f32], wq: usize, taps: &[(usize, f32)], bias: f32, dst: &mut [f32], ow: usize) {
+        rows_generic::<true>(src, wq, taps, bias, dst, ow)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn rows_avx2(src: &[f32], wq: usize, taps: &[(usize, f32)], bias: f32, dst: &mut [f32], ow: usize) {
+        rows_generic::<true>(src, wq, taps, bias, dst, ow)
+    }
+
+    /// The portable form; `FUSED` uses fused multiply-adds (only where the CPU has them:
+    /// elsewhere `mul_add` is a library call).
+    #[inline(always)]
+    pub(super) fn rows_generic<const FUSED: bool>(
+        src: &[f32],
+        wq: usize,
+        taps: &[(usize, f32)],
+        bias: f32,
+        dst: &mut [f32],
+        ow: usize,
+    ) {
+        let madd = |acc: f32, w: f32, x: f32| if FUSED { w.mul_add(x, acc) } else { acc + w * x };
+        for (y, out) in dst.chunks_exact_mut(ow).enumerate() {
+            let base = y * wq;
+            let mut x0 = 0;
+            while x0 + BLOCK <= ow {
+                let mut acc = [bias; BLOCK];
+                for &(off, w) in taps {
+                    let s: &[f32; BLOCK] = src[base + off + x0..][..BLOCK].try_into().expect("BLOCK values");
+                    for l in 0..BLOCK {
+                        acc[l] = madd(acc[l], w, s[l]);
+                    }
+                }
+                out[x0..x0 + BLOCK].copy_from_slice(&acc);
+                x0 += BLOCK;
+            }
+            if x0 < ow {
+                // The last columns: a whole block is computed (the scratch is padded for it),
+                // and only the columns that exist are kept.
+                let mut acc = [bias; BLOCK];
+                for &(off, w) in taps {
+                    let s = &src[base + off + x0..][..BLOCK];
+                    for l in 0..BLOCK {
+                        acc[l] = madd(acc[l], w, s[l]);
+                    }
+                }
+                out[x0..].copy_from_slice(&acc[..ow - x0]);
+            }
+        }
+    }
+}
+
+impl Op for DepthwiseConv {
+    fn name(&self) -> StaticName {
+        "DepthwiseConv".into()
+    }
+
+    fn info(&self) -> TractResult<Vec<String>> {
+        let s = &self.shape;
+        Ok(vec![format!("{}x{} kernel, stride {}, {} channels, pad {:?}", s.kh, s.kw, s.stride, s.ci, s.pad)])
+    }
+
+    op_as_typed_op!();
+}
+
+impl EvalOp for DepthwiseConv {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let input = args_1!(inputs);
+        let s = &self.shape;
+        let (n, c, h, w) = match (self.batch, input.shape()) {
+            (true, &[n, c, h, w]) => (n, c, h, w),
+            (false, &[c, h, w]) => (1, c, h, w),
+            _ => bail!("DepthwiseConv: input {:?} for {s:?}", input.shape()),
+        };
+        ensure!((c, h, w) == (s.ci, s.h, s.w), "DepthwiseConv: input {:?} for {s:?}", input.shape());
+        let input = input.try_as_plain_ram()?;
+        let input = input.as_slice::<f32>()?;
+        let (oh, ow) = s.out();
+        let shape: TVec<usize> = if self.batch { tvec![n, c, oh, ow] } else { tvec![c, oh, ow] };
+        let one = |plane: usize, dst: &mut [f32]| {
+            let src = &input[plane * h * w..(plane + 1) * h * w];
+            self.channel(plane % c, src, dst, &mut Vec::new());
+        };
+        let out = output_tensor(&shape, |out: &mut [f32]| {
+            // Handing a layer this small to other threads costs more than it saves.
+            if n * c * oh * ow * s.kh * s.kw < SERIAL_MACS {
+                out.chunks_mut(oh * ow).enumerate().for_each(|(i, d)| one(i, d));
+            } else {
+                par_chunks(out, oh * ow, one);
+            }
+            Ok(())
+        })?;
+        Ok(tvec!(out.into_tvalue()))
+    }
+}
+
+impl TypedOp for DepthwiseConv {
+    fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        let (oh, ow) = self.shape.out();
+        let (c, oh, ow): (TDim, TDim, TDim) = (self.shape.co.into(), oh.into(), ow.into());
+        Ok(tvec!(if self.batch { f32::fact([inputs[0].shape[0].clone(), c, oh, ow]) } else { f32::fact([c, oh, ow]) }))
+    }
+
+    fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
+        let (oh, ow) = self.shape.out();
+        let s = &self.shape;
+        let n = if self.batch { inputs[0].shape[0].clone() } else { 1.into() };
+        Ok(tvec!((Cost::FMA(f32::datum_type()), n * (s.co * oh * ow * s.kh * s.kw))))
+    }
+
+    as_op!();
+}
+
+/// The [`DepthwiseConv`] for `node` of `model` if it is a float convolution with one group per
+/// channel, constant weights and bias, stride 1 or 2, dilation 1, explicit padding, NCHW (or
+/// CHW, where tract dropped a batch axis of 1).
+pub(crate) fn depthwise(model: &TypedModel, node: &TypedNode) -> TractResult<Option<DepthwiseConv>> {
+    let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
+    let facts = model.node_input_facts(node.id)?;
+    let ps = &conv.pool_spec;
+    let Some(pad) = pads_2d(&ps.padding) else { return Ok(None) };
+    let plain = conv.q_params.is_none()
+        && conv.kernel_fmt == KernelFormat::OIHW
+        && matches!(ps.data_format, DataFormat::NCHW | DataFormat::CHW)
+        && ps.kernel_shape.len() == 2
+        && conv.group == ps.input_channels
+        && ps.input_channels == ps.output_channels
+        && conv.group > 1
+        && all_ones(&ps.dilations)
+        && facts.len() == 3
+        && facts.iter().all(|f| f.datum_type == f32::datum_type());
+    if !plain {
+        return Ok(None);
+    }
+    let stride = match ps.strides.as_deref() {
+        None | Some([1, 1]) => 1,
+        Some([2, 2]) => 2,
+        _ => return Ok(None),
+    };
+    let (Some(weight), Some(bias)) = (&facts[1].konst, &facts[2].konst) else { return Ok(None) };
+    let batch = ps.data_format == DataFormat::NCHW;
+    let (ci, h, w) = match (batch, facts[0].shape.as_concrete()) {
+        (true, Some(&[_, ci, h, w])) | (false, Some(&[ci, h, w])) => (ci, h, w),
+        _ => return Ok(None),
+    };
+    let (kh, kw) = (ps.kernel_shape[0], ps.kernel_shape[1]);
+    let shape = ConvShape { ci, h, w, co: ci, kh, kw, pad, stride };
+    if shape.padded().0 < kh || shape.padded().1 < kw {
+        return Ok(None);
+    }
+    let (weight, bias) = (weight.try_as_plain_ram()?, bias.try_as_plain_ram()?);
+    Ok(Some(DepthwiseConv::new(shape, batch, weight.as_slice::<f32>()?, bias.as_slice::<f32>()?)?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn direct(s: &ConvShape, input: &[f32], weight: &[f32], bias: &[f32]) -> Vec<f32> {
+        let (oh, ow) = s.out();
+        let at = |c: usize, y: usize, x: usize| -> f64 {
+            let (y, x) = (y as isize - s.pad[0] as isize, x as isize - s.pad[1] as isize);
+            if y < 0 || x < 0 || y >= s.h as isize || x >= s.w as isize {
+                0.0
+            } else {
+                input[(c * s.h + y as usize) * s.w + x as usize] as f64
+            }
+        };
+        let mut out = vec![];
+        for c in 0..s.ci {
+            for y in 0..oh {
+                for x in 0..ow {
+                    let mut acc = bias[c] as f64;
+                    for i in 0..s.kh {
+                        for j in 0..s.kw {
+                            acc += at(c, y * s.stride + i, x * s.stride + j) * weight[(c * s.kh + i) * s.kw + j] as f64;
+                        }
+                    }
+                    out.push(acc as f32);
+                }
+            }
+        }
+        out
+    }
+
+    type Rows = fn(&[f32], usize, &[(usize, f32)], f32, &mut [f32], usize);
+
+    /// Every row kernel this CPU can run, by name.
+    fn paths() -> Vec<(&'static str, Rows)> {
+        let mut v: Vec<(&'static str, Rows)> = vec![("generic", kernel::rows_generic::<false>)];
+        #[cfg(target_arch = "x86_64")]
+        {
+            if super::super::avx2_fma() {
+                // SAFETY (of the call through this pointer): AVX2 and FMA are present.
+                v.push(("avx2", |a, b, c, d, e, f| unsafe { kernel::rows_avx2(a, b, c, d, e, f) }));
+            } else {
+                eprintln!("NOTE: no AVX2+FMA on this CPU: DepthwiseConv's AVX2 path is not tested here");
+            }
+            if super::super::avx512_fma() {
+                // SAFETY (of the call through this pointer): AVX-512F, AVX2 and FMA are present.
+                v.push(("avx512", |a, b, c, d, e, f| unsafe { kernel::rows_avx512(a, b, c, d, e, f) }));
+            } else {
+                eprintln!("NOTE: no AVX-512 on this CPU: DepthwiseConv's AVX-512 path is not tested here");
+            }
+        }
+        v
+    }
+
+    #[test]
+    fn every_path_equals_the_direct_sum() {
+        for s in [
+            ConvShape { ci: 3, h: 9, w: 7, co: 3, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 },
+            ConvShape { ci: 4, h: 37, w: 70, co: 4, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 },
+            ConvShape { ci: 5, h: 33, w: 65, co: 5, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 },
+            ConvShape { ci: 2, h: 16, w: 16, co: 2, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 2 },
+            ConvShape { ci: 3, h: 10, w: 13, co: 3, kh: 4, kw: 3, pad: [0, 1, 2, 0], stride: 2 },
+        ] {
+            let n_in = s.ci * s.h * s.w;
+            let input: Vec<f32> = (0..2 * n_in).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
+            let weight: Vec<f32> = (0..s.ci * s.kh * s.kw).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+            let bias: Vec<f32> = (0..s.ci).map(|o| o as f32 / 4.0).collect();
+            let op = DepthwiseConv::new(s.clone(), true, &weight, &bias).unwrap();
+            let (oh, ow) = s.out();
+            for (name, path) in paths() {
+                for n in 0..2 {
+                    let want = direct(&s, &input[n * n_in..(n + 1) * n_in], &weight, &bias);
+                    let mut got = vec![0f32; s.ci * oh * ow];
+                    for (c, dst) in got.chunks_exact_mut(oh * ow).enumerate() {
+                        let src = &input[n * n_in + c * s.h * s.w..][..s.h * s.w];
+                        let mut scratch = vec![];
+                        op.channel(c, src, dst, &mut scratch);
+                        // The same channel through the path under test.
+                        let (_, wq) = s.phase();
+                        let st = s.stride;
+                        let hq = s.phase().0;
+                        let taps: Vec<(usize, f32)> = (0..s.kh)
+                            .flat_map(|i| (0..s.kw).map(move |j| (i, j)))
+                            .map(|(i, j)| {
+                                let off = (((i % st) * st + j % st) * hq + i / st) * wq + j / st;
+                                (off, weight[(c * s.kh + i) * s.kw + j])
+                            })
+                            .collect();
+                        path(&scratch, wq, &taps, bias[c], dst, ow);
+                    }
+                    let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+                    assert!(worst < 1e-4, "{name} {s:?} image {n}: off by {worst}");
+                }
+            }
+            // And the operator as tract runs it.
+            let x = tract_ndarray::Array4::from_shape_vec((2, s.ci, s.h, s.w), input.clone()).unwrap();
+            let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();
+            let out = out[0].try_as_plain_ram().unwrap();
+            let out = out.as_slice::<f32>().unwrap();
+            for n in 0..2 {
+                let want = direct(&s, &input[n * n_in..(n + 1) * n_in], &weight, &bias);
+                let got = &out[n * want.len()..(n + 1) * want.len()];
+                let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+                assert!(worst < 1e-4, "op {s:?} image {n}: off by {worst}");
+            }
+        }
+    }
+}
