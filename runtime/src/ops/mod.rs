@@ -5,7 +5,8 @@
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some), max pooling
 //! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
 //! norms ([`LayerNormCore`]), linear layers ([`ConstMatMul`]) and broadcast products and sums
-//! ([`BroadcastBinary`]). Plans on disk keep tract's
+//! ([`BroadcastBinary`]), and int8 plans' quantisation of activations ([`QuantizeU8`]). Plans
+//! on disk keep tract's
 //! standard operators, so the choice is made on the machine that runs the plan.
 
 mod attention;
@@ -19,6 +20,7 @@ mod pool;
 mod qconv;
 mod qconv_amx;
 mod qconv_kernel;
+mod quant;
 mod xcorr;
 mod xcorr_kernel;
 
@@ -30,6 +32,7 @@ pub use matmul::ConstMatMul;
 pub use norm::LayerNormCore;
 pub use pool::ChannelMaxPool;
 pub use qconv::PackedQConv;
+pub use quant::QuantizeU8;
 pub use xcorr::DepthwiseXCorr;
 
 use tract_nnef::internal::*;
@@ -55,6 +58,8 @@ pub struct Accelerated {
     pub matmuls: usize,
     /// Broadcast f32 products and sums made [`BroadcastBinary`].
     pub broadcasts: usize,
+    /// Quantisations of f32 activations to u8 made [`QuantizeU8`].
+    pub quantizers: usize,
 }
 
 /// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
@@ -88,6 +93,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         } else if let Some(op) = binary::broadcast_binary(model, node)? {
             done.broadcasts += 1;
             (Box::new(op), node.inputs.iter().copied().collect())
+        } else if let Some(op) = quant::quantize_u8(model, node)? {
+            done.quantizers += 1;
+            (Box::new(op), tvec![node.inputs[0]])
         } else if xcorr::matches(model, node)? {
             done.correlations += 1;
             (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())
