@@ -115,16 +115,6 @@ fn cli_imports_compiles_and_tracks() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("the model is a nanotrack"));
 }
 
-/// Nodes that multiply on integers: tract's i32 matmul kernels or the runtime's u8 x i8
-/// convolution.
-fn int8_kernel_nodes(plan: &Plan) -> Vec<String> {
-    plan.search_nodes()
-        .into_iter()
-        .filter(|n| (n.op == "OptMatMul" && n.info.contains("mmm_i32")) || n.op == "PackedQConv")
-        .map(|n| n.name)
-        .collect()
-}
-
 /// Bounds on the int8 plan's relative error against fp32 on held-out wakeboard7 crops, when
 /// calibrated on 16 building4 frames (the README's plan, on 64 frames, measured cls 0.033 and
 /// loc 0.027 on 32 crops).
@@ -153,10 +143,10 @@ fn int8_plan_runs_integer_kernels_near_fp32_on_held_out_footage() {
     let qi = plan.manifest().quantization.as_ref().unwrap();
     let n8 = qi.layers.iter().filter(|l| l.decision == prl_runtime::LayerDecision::Int8).count();
     assert!(n8 >= 15, "{n8} int8 layers");
-    let kernels = int8_kernel_nodes(&plan);
+    let kernels = common::int8_kernel_nodes(&plan);
     assert!(kernels.len() >= 10, "{kernels:?}");
     assert!(kernels.iter().any(|k| k.starts_with("head_")), "the head's pointwise convs: {kernels:?}");
-    assert!(int8_kernel_nodes(&Plan::load(&fp32).unwrap()).is_empty());
+    assert!(common::int8_kernel_nodes(&Plan::load(&fp32).unwrap()).is_empty());
     // Held-out fidelity and tracking, through prl compare.
     let json = tmp.path().join("compare.json");
     let w7 = s(&common::sequence("wakeboard7"));
@@ -174,4 +164,35 @@ fn int8_plan_runs_integer_kernels_near_fp32_on_held_out_footage() {
     let tracks = &r["sequences"][0]["plans"];
     assert!(tracks[1]["mean_iou_to_ref"].as_f64().unwrap() > 0.7, "{tracks}");
     assert!(r["plans"][1]["peak_rss_mb"].as_f64().is_some(), "peak memory from the child's JSON");
+}
+
+#[test]
+fn a_backbone_and_a_whole_search_graph_import_to_the_same_model() {
+    use prl_compiler::{FamilyImport, OnnxFile, Parts};
+    let n = common::nanotrack_dir();
+    let backbone = OnnxFile::read(&n.join("nanotrack_backbone_sim.onnx")).unwrap();
+    let split = prl_compiler::import_nanotrack(&backbone.path, &n.join("nanotrack_head_sim.onnx"), None).unwrap();
+    // The joined search graph, given as a whole (as a model published that way would be).
+    let tmp = tempfile::tempdir().unwrap();
+    let search = tmp.path().join("search.onnx");
+    std::fs::write(&search, &split.search).unwrap();
+    let family = FamilyImport { model: "nanotrack-v2".into(), tracker: prl_runtime::TrackerConfig::nanotrack(), config: None };
+    let parts = Parts::BackboneSearch { backbone, search: OnnxFile::read(&search).unwrap() };
+    let whole = prl_compiler::import::import(&parts, &family).unwrap();
+    assert_eq!(whole.manifest.search.inputs, split.manifest.search.inputs);
+    assert_eq!(whole.manifest.search.outputs, split.manifest.search.outputs);
+    assert_eq!(whole.template, split.template);
+    // Both search graphs compute the same function.
+    let x = prl_compiler::Tensor::new(vec![1, 3, 255, 255], (0..3 * 255 * 255).map(|i| (i % 251) as f32).collect());
+    let z = prl_compiler::Tensor::new(vec![1, 3, 127, 127], (0..3 * 127 * 127).map(|i| (i % 241) as f32).collect());
+    let t = prl_compiler::OnnxRunner::new(&split.template, "template", &split.manifest.template.inputs, None).unwrap();
+    let zf = t.run(&[&z]).unwrap();
+    let run = |m: &prl_compiler::BuiltModel| {
+        let s = prl_compiler::OnnxRunner::new(&m.search, "search", &m.manifest.search.inputs, None).unwrap();
+        s.run(&[&x, &zf[0]]).unwrap()
+    };
+    let (a, b) = (run(&split), run(&whole));
+    for (a, b) in a.iter().zip(&b) {
+        assert_eq!(a.data, b.data);
+    }
 }

@@ -67,16 +67,6 @@ fn held_out_errors(a: &Path, b: &Path) -> [f64; 3] {
     err
 }
 
-/// Nodes that multiply on integers: tract's i32 matmul kernels, or the runtime's u8 x i8
-/// convolution (on CPUs with AVX-512 VNNI).
-fn int8_kernel_nodes(plan: &Plan) -> Vec<String> {
-    plan.search_nodes()
-        .into_iter()
-        .filter(|n| (n.op == "OptMatMul" && n.info.contains("mmm_i32")) || n.op == "PackedQConv")
-        .map(|n| n.name)
-        .collect()
-}
-
 #[test]
 fn int8_plan_runs_integer_kernels_near_fp32_and_compares() {
     let fp32 = common::reference_plan();
@@ -108,10 +98,10 @@ fn int8_plan_runs_integer_kernels_near_fp32_and_compares() {
     assert!(q.ranges.values().all(|(lo, hi)| lo <= &0.0 && hi >= &0.0 && hi > lo));
 
     // The optimised search graph multiplies on tract's integer kernels.
-    let kernels = int8_kernel_nodes(&plan);
+    let kernels = common::int8_kernel_nodes(&plan);
     assert!(kernels.iter().any(|n| n.starts_with("backbone_layer2")), "{kernels:?}");
     assert!(kernels.len() >= 10, "{kernels:?}");
-    assert!(int8_kernel_nodes(&Plan::load(&fp32).unwrap()).is_empty());
+    assert!(common::int8_kernel_nodes(&Plan::load(&fp32).unwrap()).is_empty());
 
     let [loc, cls1, cls2] = held_out_errors(&fp32, &int8);
     eprintln!("held-out relative error: loc {loc:.4} cls1 {cls1:.4} cls2 {cls2:.4}");
@@ -178,7 +168,7 @@ fn every_method_works_keep_fp32_keeps_layers_in_f32_and_act_matmul_adds_attentio
         let q = plan.manifest().quantization.clone().unwrap();
         assert_eq!((q.method.as_str(), q.per_channel.as_str()), (method, "off"));
         assert!(q.layers.iter().all(|l| !l.per_channel));
-        let kernels = int8_kernel_nodes(&plan);
+        let kernels = common::int8_kernel_nodes(&plan);
         assert!(kernels.iter().any(|n| n.starts_with("backbone_layer4")), "{kernels:?}");
         let decision = |n: &str| q.layers.iter().find(|l| l.node == n).unwrap().decision;
         if method == "minmax" {

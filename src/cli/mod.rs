@@ -18,9 +18,9 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand};
 
-/// The PRL-Track deployment toolchain.
+/// The deployment toolchain for Siamese UAV trackers (PRL-Track, NanoTrack).
 #[derive(Parser)]
-#[command(name = "prl", version, about = "PRL-Track toolchain: build the network, verify it, compile plans, track")]
+#[command(name = "prl", version, about = "Siamese UAV tracker toolchain (PRL-Track, NanoTrack): build or import, verify, compile plans, quantise, track")]
 struct Cli {
     #[command(subcommand)]
     command: Command,

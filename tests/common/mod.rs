@@ -188,3 +188,13 @@ pub fn nanotrack_plan(dir: &std::path::Path) -> PathBuf {
     plan.write(&out).expect("write plan");
     out
 }
+
+/// Nodes of a plan's optimised search graph that multiply on integers: tract's i32 matmul
+/// kernels, or the runtime's u8 x i8 convolution (on CPUs with AVX-512 VNNI).
+pub fn int8_kernel_nodes(plan: &prl_runtime::Plan) -> Vec<String> {
+    plan.search_nodes()
+        .into_iter()
+        .filter(|n| (n.op == "OptMatMul" && n.info.contains("mmm_i32")) || n.op == "PackedQConv")
+        .map(|n| n.name)
+        .collect()
+}

@@ -71,12 +71,12 @@ pub struct FamilyImport {
     /// Tracker settings (the family's, with the user's config applied).
     pub tracker: TrackerConfig,
     /// The config file the settings came from, if any: named when it disagrees with the model.
-    pub config: Option<OnnxFileRef>,
+    pub config: Option<ConfigFile>,
 }
 
-/// A non-ONNX source file (a config) recorded in the manifest.
+/// A model's config file (its settings), recorded in the manifest.
 #[derive(Debug, Clone)]
-pub struct OnnxFileRef {
+pub struct ConfigFile {
     /// The file.
     pub path: PathBuf,
     /// Its SHA-256, hex.

@@ -7,7 +7,7 @@ use prl_runtime::TrackerConfig;
 use sha2::{Digest, Sha256};
 use yaml_rust2::{Yaml, YamlLoader};
 
-use super::{import, FamilyImport, OnnxFile, OnnxFileRef, Parts};
+use super::{import, FamilyImport, OnnxFile, ConfigFile, Parts};
 use crate::checkpoint::hex;
 use crate::{BuiltModel, Error, Result};
 
@@ -21,7 +21,7 @@ pub fn import_nanotrack(backbone: &Path, head: &Path, config: Option<&Path>) -> 
         Some(p) => {
             let bytes = std::fs::read(p).map_err(|e| Error::io(p, e))?;
             let text = String::from_utf8(bytes.clone()).map_err(|_| Error::format(p, "not UTF-8 text"))?;
-            (settings(&text, p)?, Some(OnnxFileRef { path: p.to_path_buf(), sha256: hex(&Sha256::digest(&bytes)) }))
+            (settings(&text, p)?, Some(ConfigFile { path: p.to_path_buf(), sha256: hex(&Sha256::digest(&bytes)) }))
         }
         None => (TrackerConfig::nanotrack(), None),
     };

@@ -246,39 +246,43 @@ pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option
     Ok(Some(PackedConv::new(shape, weight.as_slice::<f32>()?, bias.as_slice::<f32>()?)?))
 }
 
+/// A direct f64 sum of a convolution of `groups` groups (OIHW weights, `[co, ci / groups, kh,
+/// kw]`): the reference the kernels are tested against.
+#[cfg(test)]
+pub(crate) fn direct(s: &ConvShape, groups: usize, input: &[f32], weight: &[f32], bias: &[f32]) -> Vec<f32> {
+    let (oh, ow) = s.out();
+    let (cig, cog) = (s.ci / groups, s.co / groups);
+    let at = |c: usize, y: usize, x: usize| -> f64 {
+        let (y, x) = (y as isize - s.pad[0] as isize, x as isize - s.pad[1] as isize);
+        if y < 0 || x < 0 || y >= s.h as isize || x >= s.w as isize {
+            0.0
+        } else {
+            input[(c * s.h + y as usize) * s.w + x as usize] as f64
+        }
+    };
+    let mut out = vec![];
+    for o in 0..s.co {
+        for y in 0..oh {
+            for x in 0..ow {
+                let mut acc = bias[o] as f64;
+                for c in 0..cig {
+                    for i in 0..s.kh {
+                        for j in 0..s.kw {
+                            acc += at((o / cog) * cig + c, y * s.stride + i, x * s.stride + j)
+                                * weight[((o * cig + c) * s.kh + i) * s.kw + j] as f64;
+                        }
+                    }
+                }
+                out.push(acc as f32);
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn direct(s: &ConvShape, input: &[f32], weight: &[f32], bias: &[f32]) -> Vec<f32> {
-        let (oh, ow) = s.out();
-        let at = |c: usize, y: usize, x: usize| -> f64 {
-            let (y, x) = (y as isize - s.pad[0] as isize, x as isize - s.pad[1] as isize);
-            if y < 0 || x < 0 || y >= s.h as isize || x >= s.w as isize {
-                0.0
-            } else {
-                input[(c * s.h + y as usize) * s.w + x as usize] as f64
-            }
-        };
-        let mut out = vec![];
-        for o in 0..s.co {
-            for y in 0..oh {
-                for x in 0..ow {
-                    let mut acc = bias[o] as f64;
-                    for c in 0..s.ci {
-                        for i in 0..s.kh {
-                            for j in 0..s.kw {
-                                acc += at(c, y * s.stride + i, x * s.stride + j)
-                                    * weight[((o * s.ci + c) * s.kh + i) * s.kw + j] as f64;
-                            }
-                        }
-                    }
-                    out.push(acc as f32);
-                }
-            }
-        }
-        out
-    }
 
     #[test]
     fn equals_the_direct_sum_with_padding_and_a_partial_channel_block() {
@@ -309,7 +313,7 @@ mod tests {
             let out = out.as_slice::<f32>().unwrap();
             let per_image = out.len() / 2;
             for (n, got) in out.chunks_exact(per_image).enumerate() {
-                let want = direct(&s, &input[n * n_in..(n + 1) * n_in], &weight, &bias);
+                let want = direct(&s, 1, &input[n * n_in..(n + 1) * n_in], &weight, &bias);
                 let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
                 assert!(worst < 1e-4, "{s:?} image {n}: off by {worst}");
             }

@@ -274,30 +274,7 @@ mod tests {
     use super::*;
 
     fn direct(s: &ConvShape, input: &[f32], weight: &[f32], bias: &[f32]) -> Vec<f32> {
-        let (oh, ow) = s.out();
-        let at = |c: usize, y: usize, x: usize| -> f64 {
-            let (y, x) = (y as isize - s.pad[0] as isize, x as isize - s.pad[1] as isize);
-            if y < 0 || x < 0 || y >= s.h as isize || x >= s.w as isize {
-                0.0
-            } else {
-                input[(c * s.h + y as usize) * s.w + x as usize] as f64
-            }
-        };
-        let mut out = vec![];
-        for c in 0..s.ci {
-            for y in 0..oh {
-                for x in 0..ow {
-                    let mut acc = bias[c] as f64;
-                    for i in 0..s.kh {
-                        for j in 0..s.kw {
-                            acc += at(c, y * s.stride + i, x * s.stride + j) * weight[(c * s.kh + i) * s.kw + j] as f64;
-                        }
-                    }
-                    out.push(acc as f32);
-                }
-            }
-        }
-        out
+        super::super::conv::direct(s, s.ci, input, weight, bias)
     }
 
     type Rows = fn(&[f32], usize, &[(usize, f32)], f32, &mut [f32], usize);
