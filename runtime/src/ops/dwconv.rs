@@ -32,6 +32,8 @@ pub struct DepthwiseConv {
     shape: ConvShape,
     /// The data has a batch axis (NCHW); else it is CHW (tract drops a batch axis of 1).
     batch: bool,
+    /// Each tap's offset in the padded (phase-split) plane, the same for every channel.
+    offsets: Arc<Vec<usize>>,
     weights: Arc<Vec<f32>>,
     bias: Arc<Vec<f32>>,
 }
@@ -59,16 +61,28 @@ impl DepthwiseConv {
         ensure!(weight.len() == c * shape.kh * shape.kw, "DepthwiseConv: {} weights for {shape:?}", weight.len());
         ensure!(bias.len() == 1 || bias.len() == c, "DepthwiseConv: {} bias values for {shape:?}", bias.len());
         let bias = (0..c).map(|o| if bias.len() == 1 { bias[0] } else { bias[o] }).collect();
-        Ok(DepthwiseConv { shape, batch, weights: Arc::new(weight.to_vec()), bias: Arc::new(bias) })
+        let (hq, wq) = shape.phase();
+        let st = shape.stride;
+        let offsets = (0..shape.kh)
+            .flat_map(|i| (0..shape.kw).map(move |j| (((i % st) * st + j % st) * hq + i / st) * wq + j / st))
+            .collect();
+        let (weights, bias) = (Arc::new(weight.to_vec()), Arc::new(bias));
+        Ok(DepthwiseConv { shape, batch, offsets: Arc::new(offsets), weights, bias })
     }
 
-    /// One channel: `src` `[h, w]` into `dst` `[oh, ow]`, with `scratch` for the padded phases.
-    fn channel(&self, ch: usize, src: &[f32], dst: &mut [f32], scratch: &mut Vec<f32>) {
+    /// A zeroed scratch plane for [`Self::channel`]: the padded input (its phases with stride
+    /// 2), with room for a whole column block past the end. Its borders stay zero from channel
+    /// to channel, since every channel writes the same interior positions.
+    fn scratch(&self) -> Vec<f32> {
+        let (hq, wq) = self.shape.phase();
+        vec![0.0; self.shape.stride * self.shape.stride * hq * wq + BLOCK]
+    }
+
+    /// One channel: `src` `[h, w]` into `dst` `[oh, ow]`, with `scratch` from [`Self::scratch`].
+    fn channel(&self, ch: usize, src: &[f32], dst: &mut [f32], scratch: &mut [f32]) {
         let s = &self.shape;
         let (hq, wq) = s.phase();
         let st = s.stride;
-        scratch.clear();
-        scratch.resize(st * st * hq * wq + BLOCK, 0.0);
         for (y, row) in src.chunks_exact(s.w).enumerate() {
             let yp = y + s.pad[0];
             if st == 1 {
@@ -78,88 +92,105 @@ impl DepthwiseConv {
             }
             scatter_row_s2(&mut scratch[..4 * hq * wq], row, yp, s.pad[1], hq, wq);
         }
-        let (kh, kw) = (s.kh, s.kw);
-        let taps: Vec<(usize, f32)> = (0..kh)
-            .flat_map(|i| (0..kw).map(move |j| (i, j)))
-            .map(|(i, j)| ((((i % st) * st + j % st) * hq + i / st) * wq + j / st, self.weights[(ch * kh + i) * kw + j]))
-            .collect();
+        let taps = s.kh * s.kw;
         let (_, ow) = s.out();
-        kernel::rows(scratch, wq, &taps, self.bias[ch], dst, ow);
+        kernel::rows(scratch, wq, &self.offsets, &self.weights[ch * taps..(ch + 1) * taps], self.bias[ch], dst, ow);
     }
 }
 
 /// The row kernel, compiled for AVX-512, for AVX2 + FMA and generically; the CPU's best is
 /// chosen when run.
 mod kernel {
-    use super::BLOCK;
+    /// The arguments of every path: the padded plane, its row length, the taps' offsets and
+    /// weights, the bias, the output rows and their length.
+    #[cfg(test)]
+    pub(super) type Rows = fn(&[f32], usize, &[usize], &[f32], f32, &mut [f32], usize);
 
-    /// Every output row of one channel: `dst` (`ow` columns a row) is `bias` plus, for each tap
-    /// `(offset, weight)`, `weight` times the padded input from `offset` on (row `y` of the
-    /// output reads from `offset + y * wq`).
-    pub(super) fn rows(src: &[f32], wq: usize, taps: &[(usize, f32)], bias: f32, dst: &mut [f32], ow: usize) {
+    /// Every output row of one channel: `dst` (`ow` columns a row) is `bias` plus, for each tap,
+    /// its weight times the padded input from its offset on (row `y` of the output reads from
+    /// `offset + y * wq`).
+    pub(super) fn rows(src: &[f32], wq: usize, offs: &[usize], ws: &[f32], bias: f32, dst: &mut [f32], ow: usize) {
         #[cfg(target_arch = "x86_64")]
         {
             if super::super::avx512_fma() {
                 // SAFETY: the CPU has AVX-512F, AVX2 and FMA (checked above).
-                return unsafe { rows_avx512(src, wq, taps, bias, dst, ow) };
+                return unsafe { rows_avx512(src, wq, offs, ws, bias, dst, ow) };
             }
             if super::super::avx2_fma() {
                 // SAFETY: the CPU has AVX2 and FMA (checked above).
-                return unsafe { rows_avx2(src, wq, taps, bias, dst, ow) };
+                return unsafe { rows_avx2(src, wq, offs, ws, bias, dst, ow) };
             }
         }
-        rows_generic::<false>(src, wq, taps, bias, dst, ow)
+        rows_generic::<false>(src, wq, offs, ws, bias, dst, ow)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx2,fma")]
-    pub(super) unsafe fn rows_avx512(src: &[f32], wq: usize, taps: &[(usize, f32)], bias: f32, dst: &mut [f32], ow: usize) {
-        rows_generic::<true>(src, wq, taps, bias, dst, ow)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn rows_avx2(src: &[f32], wq: usize, taps: &[(usize, f32)], bias: f32, dst: &mut [f32], ow: usize) {
-        rows_generic::<true>(src, wq, taps, bias, dst, ow)
-    }
-
-    /// The portable form; `FUSED` uses fused multiply-adds (only where the CPU has them:
-    /// elsewhere `mul_add` is a library call).
-    #[inline(always)]
-    pub(super) fn rows_generic<const FUSED: bool>(
+    pub(super) unsafe fn rows_avx512(
         src: &[f32],
         wq: usize,
-        taps: &[(usize, f32)],
+        offs: &[usize],
+        ws: &[f32],
         bias: f32,
         dst: &mut [f32],
         ow: usize,
     ) {
-        let madd = |acc: f32, w: f32, x: f32| if FUSED { w.mul_add(x, acc) } else { acc + w * x };
+        rows_generic::<true>(src, wq, offs, ws, bias, dst, ow)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn rows_avx2(
+        src: &[f32],
+        wq: usize,
+        offs: &[usize],
+        ws: &[f32],
+        bias: f32,
+        dst: &mut [f32],
+        ow: usize,
+    ) {
+        rows_generic::<true>(src, wq, offs, ws, bias, dst, ow)
+    }
+
+    /// `B` output columns from `at` on, into `out` (its first `out.len() <= B` are kept).
+    #[inline(always)]
+    fn block<const FUSED: bool, const B: usize>(src: &[f32], at: usize, offs: &[usize], ws: &[f32], bias: f32, out: &mut [f32]) {
+        let mut acc = [bias; B];
+        for (&off, &w) in offs.iter().zip(ws) {
+            let s: &[f32; B] = src[at + off..][..B].try_into().expect("B values");
+            for l in 0..B {
+                acc[l] = if FUSED { w.mul_add(s[l], acc[l]) } else { acc[l] + w * s[l] };
+            }
+        }
+        let n = out.len();
+        out.copy_from_slice(&acc[..n]);
+    }
+
+    /// The portable form; `FUSED` uses fused multiply-adds (only where the CPU has them:
+    /// elsewhere `mul_add` is a library call). Rows go in blocks of 32 columns, then 16 (a
+    /// 16x16 map wastes nothing); the last block of a row computes past its end into the
+    /// scratch's slack and keeps only the columns that exist.
+    #[inline(always)]
+    pub(super) fn rows_generic<const FUSED: bool>(
+        src: &[f32],
+        wq: usize,
+        offs: &[usize],
+        ws: &[f32],
+        bias: f32,
+        dst: &mut [f32],
+        ow: usize,
+    ) {
         for (y, out) in dst.chunks_exact_mut(ow).enumerate() {
             let base = y * wq;
             let mut x0 = 0;
-            while x0 + BLOCK <= ow {
-                let mut acc = [bias; BLOCK];
-                for &(off, w) in taps {
-                    let s: &[f32; BLOCK] = src[base + off + x0..][..BLOCK].try_into().expect("BLOCK values");
-                    for l in 0..BLOCK {
-                        acc[l] = madd(acc[l], w, s[l]);
-                    }
-                }
-                out[x0..x0 + BLOCK].copy_from_slice(&acc);
-                x0 += BLOCK;
+            while x0 + 32 <= ow {
+                block::<FUSED, 32>(src, base + x0, offs, ws, bias, &mut out[x0..x0 + 32]);
+                x0 += 32;
             }
-            if x0 < ow {
-                // The last columns: a whole block is computed (the scratch is padded for it),
-                // and only the columns that exist are kept.
-                let mut acc = [bias; BLOCK];
-                for &(off, w) in taps {
-                    let s = &src[base + off + x0..][..BLOCK];
-                    for l in 0..BLOCK {
-                        acc[l] = madd(acc[l], w, s[l]);
-                    }
-                }
-                out[x0..].copy_from_slice(&acc[..ow - x0]);
+            while x0 < ow {
+                let end = (x0 + 16).min(ow);
+                block::<FUSED, 16>(src, base + x0, offs, ws, bias, &mut out[x0..end]);
+                x0 = end;
             }
         }
     }
@@ -194,16 +225,24 @@ impl EvalOp for DepthwiseConv {
         let input = input.as_slice::<f32>()?;
         let (oh, ow) = s.out();
         let shape: TVec<usize> = if self.batch { tvec![n, c, oh, ow] } else { tvec![c, oh, ow] };
-        let one = |plane: usize, dst: &mut [f32]| {
-            let src = &input[plane * h * w..(plane + 1) * h * w];
-            self.channel(plane % c, src, dst, &mut Vec::new());
+        let plane = oh * ow;
+        // Channels go in groups of about SERIAL_MACS / 8 multiply-adds, each group with one
+        // scratch plane; a layer under SERIAL_MACS stays on this thread (handing it to others
+        // costs more than it saves).
+        let macs = plane * s.kh * s.kw;
+        let group = (SERIAL_MACS / 8 / macs.max(1)).clamp(1, n * c);
+        let run = |g: usize, dst: &mut [f32]| {
+            let mut scratch = self.scratch();
+            for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                let p = g * group + k;
+                self.channel(p % c, &input[p * h * w..(p + 1) * h * w], d, &mut scratch);
+            }
         };
         let out = output_tensor(&shape, |out: &mut [f32]| {
-            // Handing a layer this small to other threads costs more than it saves.
-            if n * c * oh * ow * s.kh * s.kw < SERIAL_MACS {
-                out.chunks_mut(oh * ow).enumerate().for_each(|(i, d)| one(i, d));
+            if n * c * macs < SERIAL_MACS {
+                run(0, out);
             } else {
-                par_chunks(out, oh * ow, one);
+                par_chunks(out, group * plane, run);
             }
             Ok(())
         })?;
@@ -277,7 +316,7 @@ mod tests {
         super::super::conv::direct(s, s.ci, input, weight, bias)
     }
 
-    type Rows = fn(&[f32], usize, &[(usize, f32)], f32, &mut [f32], usize);
+    use kernel::Rows;
 
     /// Every row kernel this CPU can run, by name.
     fn paths() -> Vec<(&'static str, Rows)> {
@@ -286,13 +325,13 @@ mod tests {
         {
             if super::super::avx2_fma() {
                 // SAFETY (of the call through this pointer): AVX2 and FMA are present.
-                v.push(("avx2", |a, b, c, d, e, f| unsafe { kernel::rows_avx2(a, b, c, d, e, f) }));
+                v.push(("avx2", |a, b, c, d, e, f, g| unsafe { kernel::rows_avx2(a, b, c, d, e, f, g) }));
             } else {
                 eprintln!("NOTE: no AVX2+FMA on this CPU: DepthwiseConv's AVX2 path is not tested here");
             }
             if super::super::avx512_fma() {
                 // SAFETY (of the call through this pointer): AVX-512F, AVX2 and FMA are present.
-                v.push(("avx512", |a, b, c, d, e, f| unsafe { kernel::rows_avx512(a, b, c, d, e, f) }));
+                v.push(("avx512", |a, b, c, d, e, f, g| unsafe { kernel::rows_avx512(a, b, c, d, e, f, g) }));
             } else {
                 eprintln!("NOTE: no AVX-512 on this CPU: DepthwiseConv's AVX-512 path is not tested here");
             }
@@ -308,6 +347,8 @@ mod tests {
             ConvShape { ci: 5, h: 33, w: 65, co: 5, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 },
             ConvShape { ci: 2, h: 16, w: 16, co: 2, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 2 },
             ConvShape { ci: 3, h: 10, w: 13, co: 3, kh: 4, kw: 3, pad: [0, 1, 2, 0], stride: 2 },
+            // Over SERIAL_MACS: channels in groups (on the pool, when there is one).
+            ConvShape { ci: 16, h: 64, w: 64, co: 16, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 },
         ] {
             let n_in = s.ci * s.h * s.w;
             let input: Vec<f32> = (0..2 * n_in).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
@@ -319,22 +360,14 @@ mod tests {
                 for n in 0..2 {
                     let want = direct(&s, &input[n * n_in..(n + 1) * n_in], &weight, &bias);
                     let mut got = vec![0f32; s.ci * oh * ow];
+                    let mut scratch = op.scratch();
+                    let taps = s.kh * s.kw;
                     for (c, dst) in got.chunks_exact_mut(oh * ow).enumerate() {
                         let src = &input[n * n_in + c * s.h * s.w..][..s.h * s.w];
-                        let mut scratch = vec![];
                         op.channel(c, src, dst, &mut scratch);
                         // The same channel through the path under test.
-                        let (_, wq) = s.phase();
-                        let st = s.stride;
-                        let hq = s.phase().0;
-                        let taps: Vec<(usize, f32)> = (0..s.kh)
-                            .flat_map(|i| (0..s.kw).map(move |j| (i, j)))
-                            .map(|(i, j)| {
-                                let off = (((i % st) * st + j % st) * hq + i / st) * wq + j / st;
-                                (off, weight[(c * s.kh + i) * s.kw + j])
-                            })
-                            .collect();
-                        path(&scratch, wq, &taps, bias[c], dst, ow);
+                        let ws = &weight[c * taps..(c + 1) * taps];
+                        path(&scratch, s.phase().1, &op.offsets, ws, bias[c], dst, ow);
                     }
                     let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
                     assert!(worst < 1e-4, "{name} {s:?} image {n}: off by {worst}");
