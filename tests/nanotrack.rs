@@ -196,3 +196,25 @@ fn a_backbone_and_a_whole_search_graph_import_to_the_same_model() {
         assert_eq!(a.data, b.data);
     }
 }
+
+#[test]
+fn demo_tracks_the_generated_video_with_the_trained_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    let text = common::ok(&common::prl(&["demo", "--frames", "30", "--threads", "1", "--out", out.to_str().unwrap()]));
+    assert!(text.contains("NanoTrack v2, trained weights"), "{text}");
+    let miou: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("mean IoU with the ground truth: "))
+        .expect("the demo prints its mean IoU")
+        .trim()
+        .parse()
+        .unwrap();
+    assert!(miou > 0.6, "a trained tracker follows the generated target: mean IoU {miou}");
+    let results = std::fs::read_to_string(out.join("results.txt")).unwrap();
+    assert_eq!(results.lines().count(), 30);
+    // Weights options belong to PRL-Track: a clear error, nothing tracked.
+    let o = common::prl(&["demo", "--family", "nanotrack", "--random-seed", "1", "--out", out.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--family prl-track"));
+}
