@@ -152,24 +152,66 @@ mod kernel {
         rows_generic::<true>(src, wq, offs, ws, bias, dst, ow)
     }
 
-    /// `B` output columns from `at` on, into `out` (its first `out.len() <= B` are kept).
+    /// `B` output columns of `R` consecutive output rows from `at` on (rows `wq` apart), into
+    /// `out`: `R` rows of `ow` values, of which columns `x0 .. x0 + n` are written. `R`
+    /// independent accumulators keep the FMA units busy (one row alone is a chain of dependent
+    /// multiply-adds, bound by their latency).
     #[inline(always)]
-    fn block<const FUSED: bool, const B: usize>(src: &[f32], at: usize, offs: &[usize], ws: &[f32], bias: f32, out: &mut [f32]) {
-        let mut acc = [bias; B];
+    #[allow(clippy::too_many_arguments)]
+    fn block<const FUSED: bool, const B: usize, const R: usize>(
+        src: &[f32],
+        at: usize,
+        wq: usize,
+        offs: &[usize],
+        ws: &[f32],
+        bias: f32,
+        out: &mut [f32],
+        (ow, x0, n): (usize, usize, usize),
+    ) {
+        let mut acc = [[bias; B]; R];
         for (&off, &w) in offs.iter().zip(ws) {
-            let s: &[f32; B] = src[at + off..][..B].try_into().expect("B values");
-            for l in 0..B {
-                acc[l] = if FUSED { w.mul_add(s[l], acc[l]) } else { acc[l] + w * s[l] };
+            for (r, acc) in acc.iter_mut().enumerate() {
+                let s: &[f32; B] = src[at + r * wq + off..][..B].try_into().expect("B values");
+                for l in 0..B {
+                    acc[l] = if FUSED { w.mul_add(s[l], acc[l]) } else { acc[l] + w * s[l] };
+                }
             }
         }
-        let n = out.len();
-        out.copy_from_slice(&acc[..n]);
+        for (r, acc) in acc.iter().enumerate() {
+            out[r * ow + x0..r * ow + x0 + n].copy_from_slice(&acc[..n]);
+        }
+    }
+
+    /// `R` output rows starting at row `y` (`out` holds exactly them).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn row_group<const FUSED: bool, const R: usize>(
+        src: &[f32],
+        wq: usize,
+        offs: &[usize],
+        ws: &[f32],
+        bias: f32,
+        out: &mut [f32],
+        ow: usize,
+        y: usize,
+    ) {
+        let base = y * wq;
+        let mut x0 = 0;
+        while x0 + 32 <= ow {
+            block::<FUSED, 32, R>(src, base + x0, wq, offs, ws, bias, out, (ow, x0, 32));
+            x0 += 32;
+        }
+        while x0 < ow {
+            let n = (ow - x0).min(16);
+            block::<FUSED, 16, R>(src, base + x0, wq, offs, ws, bias, out, (ow, x0, n));
+            x0 += n;
+        }
     }
 
     /// The portable form; `FUSED` uses fused multiply-adds (only where the CPU has them:
-    /// elsewhere `mul_add` is a library call). Rows go in blocks of 32 columns, then 16 (a
-    /// 16x16 map wastes nothing); the last block of a row computes past its end into the
-    /// scratch's slack and keeps only the columns that exist.
+    /// elsewhere `mul_add` is a library call). Rows go four at a time, in blocks of 32 columns,
+    /// then 16 (a 16x16 map wastes nothing); the last block of a row computes past its end into
+    /// the scratch's slack and keeps only the columns that exist.
     #[inline(always)]
     pub(super) fn rows_generic<const FUSED: bool>(
         src: &[f32],
@@ -180,19 +222,17 @@ mod kernel {
         dst: &mut [f32],
         ow: usize,
     ) {
-        for (y, out) in dst.chunks_exact_mut(ow).enumerate() {
-            let base = y * wq;
-            let mut x0 = 0;
-            while x0 + 32 <= ow {
-                block::<FUSED, 32>(src, base + x0, offs, ws, bias, &mut out[x0..x0 + 32]);
-                x0 += 32;
-            }
-            while x0 < ow {
-                let end = (x0 + 16).min(ow);
-                block::<FUSED, 16>(src, base + x0, offs, ws, bias, &mut out[x0..end]);
-                x0 = end;
-            }
+        let oh = dst.len() / ow;
+        let mut y = 0;
+        for out in dst.chunks_exact_mut(4 * ow) {
+            row_group::<FUSED, 4>(src, wq, offs, ws, bias, out, ow, y);
+            y += 4;
         }
+        for out in dst[y * ow..].chunks_exact_mut(ow) {
+            row_group::<FUSED, 1>(src, wq, offs, ws, bias, out, ow, y);
+            y += 1;
+        }
+        debug_assert_eq!(y, oh);
     }
 }
 
