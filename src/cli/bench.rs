@@ -59,7 +59,8 @@ struct Op {
     gflops: f64,
 }
 
-/// The network module a node of the search graph belongs to, from its name.
+/// The network module a node of the search graph belongs to, from its name (PRL-Track's
+/// modules; an imported model's `backbone/...` and `head/...` nodes).
 fn module_of(node: &str) -> &'static str {
     let head = node.split(['_', '.']).next().unwrap_or("");
     match head {
@@ -69,7 +70,7 @@ fn module_of(node: &str) -> &'static str {
         "ar" => "AR",
         "sr1" | "sr2" => "SR1 + SR2",
         "hmg" => "HMG (fine representation learning)",
-        "grader" | "loc" | "cls1" | "cls2" => "heads",
+        "grader" | "head" | "loc" | "cls" | "cls1" | "cls2" => "heads",
         _ => "inputs and other",
     }
 }
