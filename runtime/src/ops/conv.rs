@@ -214,19 +214,33 @@ impl TypedOp for PackedConv {
     as_op!();
 }
 
-/// The [`PackedConv`] for `node` of `model` if it is a float convolution with stride and
-/// dilation 1, one group, constant weights and bias, NCHW, and a kernel larger than 1x1.
-pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedConv>> {
+/// A float 2-D convolution with constant OIHW weights and bias, explicit padding, dilation 1
+/// and stride 1 or 2: what the runtime's convolutions take over from tract.
+pub(crate) struct ConstConv<'a> {
+    /// tract's operator (groups, channels, data format).
+    pub conv: &'a Conv,
+    /// The data input's shape.
+    pub input: &'a [usize],
+    /// Zero padding: top, left, bottom, right.
+    pub pad: [usize; 4],
+    /// Stride, the same along rows and columns.
+    pub stride: usize,
+    /// Kernel rows and columns.
+    pub kernel: (usize, usize),
+    /// The weights and bias, row-major.
+    pub weight: &'a [f32],
+    pub bias: &'a [f32],
+}
+
+/// `node` of `model` as a [`ConstConv`], if it is one.
+pub(crate) fn const_conv<'a>(model: &'a TypedModel, node: &'a TypedNode) -> TractResult<Option<ConstConv<'a>>> {
     let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
     let facts = model.node_input_facts(node.id)?;
     let ps = &conv.pool_spec;
     let Some(pad) = pads_2d(&ps.padding) else { return Ok(None) };
     let plain = conv.q_params.is_none()
         && conv.kernel_fmt == KernelFormat::OIHW
-        && ps.data_format == DataFormat::NCHW
         && ps.kernel_shape.len() == 2
-        && ps.kernel_shape.iter().product::<usize>() > 1
-        && conv.group == 1
         && all_ones(&ps.dilations)
         && facts.len() == 3
         && facts.iter().all(|f| f.datum_type == f32::datum_type());
@@ -239,11 +253,25 @@ pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option
         _ => return Ok(None),
     };
     let (Some(weight), Some(bias)) = (&facts[1].konst, &facts[2].konst) else { return Ok(None) };
-    let Some(&[_, ci, h, w]) = facts[0].shape.as_concrete() else { return Ok(None) };
-    let (kh, kw) = (ps.kernel_shape[0], ps.kernel_shape[1]);
-    let shape = ConvShape { ci, h, w, co: ps.output_channels, kh, kw, pad, stride };
+    let Some(input) = facts[0].shape.as_concrete() else { return Ok(None) };
     let (weight, bias) = (weight.try_as_plain_ram()?, bias.try_as_plain_ram()?);
-    Ok(Some(PackedConv::new(shape, weight.as_slice::<f32>()?, bias.as_slice::<f32>()?)?))
+    let kernel = (ps.kernel_shape[0], ps.kernel_shape[1]);
+    let (weight, bias) = (weight.as_slice::<f32>()?, bias.as_slice::<f32>()?);
+    Ok(Some(ConstConv { conv, input, pad, stride, kernel, weight, bias }))
+}
+
+/// The [`PackedConv`] for `node` of `model` if it is a [`ConstConv`] with one group, NCHW, and a
+/// kernel larger than 1x1.
+pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedConv>> {
+    let Some(c) = const_conv(model, node)? else { return Ok(None) };
+    let ps = &c.conv.pool_spec;
+    let (kh, kw) = c.kernel;
+    let (&[_, ci, h, w], 1, DataFormat::NCHW) = (c.input, c.conv.group, ps.data_format) else { return Ok(None) };
+    if kh * kw == 1 {
+        return Ok(None);
+    }
+    let shape = ConvShape { ci, h, w, co: ps.output_channels, kh, kw, pad: c.pad, stride: c.stride };
+    Ok(Some(PackedConv::new(shape, c.weight, c.bias)?))
 }
 
 /// A direct f64 sum of a convolution of `groups` groups (OIHW weights, `[co, ci / groups, kh,

@@ -11,11 +11,10 @@
 use std::sync::Arc;
 
 use tract_nnef::internal::*;
-use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv::{scatter_row_s2, ConvShape};
-use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits};
+use super::{output_tensor, par_chunks, same_bits};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
 const BLOCK: usize = 32;
@@ -307,45 +306,26 @@ impl TypedOp for DepthwiseConv {
     as_op!();
 }
 
-/// The [`DepthwiseConv`] for `node` of `model` if it is a float convolution with one group per
-/// channel, constant weights and bias, stride 1 or 2, dilation 1, explicit padding, NCHW (or
-/// CHW, where tract dropped a batch axis of 1).
+/// The [`DepthwiseConv`] for `node` of `model` if it is a [`super::conv::ConstConv`] with one
+/// group per channel, NCHW (or CHW, where tract dropped a batch axis of 1).
 pub(crate) fn depthwise(model: &TypedModel, node: &TypedNode) -> TractResult<Option<DepthwiseConv>> {
-    let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
-    let facts = model.node_input_facts(node.id)?;
-    let ps = &conv.pool_spec;
-    let Some(pad) = pads_2d(&ps.padding) else { return Ok(None) };
-    let plain = conv.q_params.is_none()
-        && conv.kernel_fmt == KernelFormat::OIHW
-        && matches!(ps.data_format, DataFormat::NCHW | DataFormat::CHW)
-        && ps.kernel_shape.len() == 2
-        && conv.group == ps.input_channels
-        && ps.input_channels == ps.output_channels
-        && conv.group > 1
-        && all_ones(&ps.dilations)
-        && facts.len() == 3
-        && facts.iter().all(|f| f.datum_type == f32::datum_type());
-    if !plain {
+    let Some(c) = super::conv::const_conv(model, node)? else { return Ok(None) };
+    let ps = &c.conv.pool_spec;
+    let g = c.conv.group;
+    if !(g > 1 && g == ps.input_channels && g == ps.output_channels) {
         return Ok(None);
     }
-    let stride = match ps.strides.as_deref() {
-        None | Some([1, 1]) => 1,
-        Some([2, 2]) => 2,
+    let (batch, (ci, h, w)) = match (ps.data_format, c.input) {
+        (DataFormat::NCHW, &[_, ci, h, w]) => (true, (ci, h, w)),
+        (DataFormat::CHW, &[ci, h, w]) => (false, (ci, h, w)),
         _ => return Ok(None),
     };
-    let (Some(weight), Some(bias)) = (&facts[1].konst, &facts[2].konst) else { return Ok(None) };
-    let batch = ps.data_format == DataFormat::NCHW;
-    let (ci, h, w) = match (batch, facts[0].shape.as_concrete()) {
-        (true, Some(&[_, ci, h, w])) | (false, Some(&[ci, h, w])) => (ci, h, w),
-        _ => return Ok(None),
-    };
-    let (kh, kw) = (ps.kernel_shape[0], ps.kernel_shape[1]);
-    let shape = ConvShape { ci, h, w, co: ci, kh, kw, pad, stride };
+    let (kh, kw) = c.kernel;
+    let shape = ConvShape { ci, h, w, co: ci, kh, kw, pad: c.pad, stride: c.stride };
     if shape.padded().0 < kh || shape.padded().1 < kw {
         return Ok(None);
     }
-    let (weight, bias) = (weight.try_as_plain_ram()?, bias.try_as_plain_ram()?);
-    Ok(Some(DepthwiseConv::new(shape, batch, weight.as_slice::<f32>()?, bias.as_slice::<f32>()?)?))
+    Ok(Some(DepthwiseConv::new(shape, batch, c.weight, c.bias)?))
 }
 
 #[cfg(test)]
