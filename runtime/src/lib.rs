@@ -24,6 +24,7 @@ mod cropper;
 mod error;
 mod family;
 mod frame;
+mod isa;
 mod manifest;
 mod nnef;
 mod ops;
@@ -37,6 +38,7 @@ pub use crop::{crop_to_tensor, get_subwindow};
 pub use cropper::{Cropper, TemplateCrop};
 pub use error::{Error, Result};
 pub use frame::{Frame, PixelLayout};
+pub use isa::{isa, isa_warning, Isa};
 pub use manifest::{
     GraphInfo, PlanManifest, Preprocessing, SourceFile, TensorInfo, WeightsInfo, PLAN_FORMAT_VERSION, PLAN_MANIFEST,
 };

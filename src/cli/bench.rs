@@ -216,6 +216,10 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         report.frame,
         load.as_millis()
     );
+    if let Some(w) = prl_runtime::isa_warning() {
+        eprintln!("warning: {w}");
+    }
+    println!("runtime kernels may use: {}", prl_runtime::isa().describe());
     println!("{:<18} {:>10} {:>10}", "stage", "median ms", "p90 ms");
     for s in &report.stages {
         println!("{:<18} {:>10.2} {:>10.2}", s.stage, s.median_ms, s.p90_ms);

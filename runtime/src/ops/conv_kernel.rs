@@ -38,7 +38,7 @@ pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &
     assert!(weights.len() == l.taps.len() * ROWS);
     assert!(l.taps.iter().all(|&t| t + l.positions() + MAX_PX <= padded.len()));
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") {
+    if super::avx512_fma() {
         // SAFETY: the CPU has AVX-512F; every load stays in `padded` and `weights` (asserted).
         unsafe { positions_avx512(l, padded, weights, bias, out) };
         return;

@@ -148,17 +148,23 @@ fn same_bits(a: &[f32], b: &[f32]) -> bool {
     a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
 }
 
-/// Whether the CPU has AVX2 and FMA (the kernels' fused multiply-add path on x86_64).
+/// Whether the kernels may use AVX2 and FMA ([`crate::isa`]: the CPU has them and `PRL_ISA`
+/// allows them).
 #[cfg(target_arch = "x86_64")]
 fn avx2_fma() -> bool {
-    std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    crate::isa().avx2_fma
 }
 
-/// Whether the CPU has AVX-512F as well as AVX2 and FMA (the 16-lane paths of the f32 kernels
-/// compiled for `avx512f,avx2,fma`).
+/// Whether the kernels may use AVX-512F (with AVX2 and FMA): the 16-lane paths of the f32
+/// kernels compiled for `avx512f,avx2,fma`.
 #[cfg(target_arch = "x86_64")]
 fn avx512_fma() -> bool {
-    std::arch::is_x86_feature_detected!("avx512f") && avx2_fma()
+    crate::isa().avx512
+}
+
+/// Whether the CPU and OS run AMX int8 tiles (before any `PRL_ISA` cap).
+pub(crate) fn amx_available() -> bool {
+    qconv_amx::available()
 }
 
 /// A pointer that threads writing disjoint elements share.

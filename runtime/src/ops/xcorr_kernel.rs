@@ -56,7 +56,7 @@ pub(crate) fn correlate_channel(
         dst[g.w..].fill(0.0);
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx512f") {
+    if super::avx512_fma() {
         // SAFETY: the CPU has the features the function is compiled for (checked just above).
         unsafe { strips_avx512(g, scratch, kernel, bias, out) };
         return;
