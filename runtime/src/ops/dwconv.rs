@@ -347,13 +347,13 @@ mod tests {
                 // SAFETY (of the call through this pointer): AVX2 and FMA are present.
                 v.push(("avx2", |a, b, c, d, e, f, g| unsafe { kernel::rows_avx2(a, b, c, d, e, f, g) }));
             } else {
-                eprintln!("NOTE: no AVX2+FMA on this CPU: DepthwiseConv's AVX2 path is not tested here");
+                eprintln!("NOTE: no AVX2+FMA here (or PRL_ISA caps it): DepthwiseConv's AVX2 path is not tested here");
             }
             if super::super::avx512_fma() {
                 // SAFETY (of the call through this pointer): AVX-512F, AVX2 and FMA are present.
                 v.push(("avx512", |a, b, c, d, e, f, g| unsafe { kernel::rows_avx512(a, b, c, d, e, f, g) }));
             } else {
-                eprintln!("NOTE: no AVX-512 on this CPU: DepthwiseConv's AVX-512 path is not tested here");
+                eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): DepthwiseConv's AVX-512 path is not tested here");
             }
         }
         v

@@ -143,14 +143,14 @@ mod tests {
                     unsafe { kernel::quantize_avx2(&xs, &mut ys, scale, zp as i32) };
                     paths.push(("avx2", ys.clone()));
                 } else {
-                    eprintln!("NOTE: no AVX2+FMA on this CPU: QuantizeU8's AVX2 path is not tested here");
+                    eprintln!("NOTE: no AVX2+FMA here (or PRL_ISA caps it): QuantizeU8's AVX2 path is not tested here");
                 }
                 if super::super::avx512_fma() {
                     // SAFETY: AVX-512F, AVX2 and FMA are present.
                     unsafe { kernel::quantize_avx512(&xs, &mut ys, scale, zp as i32) };
                     paths.push(("avx512", ys.clone()));
                 } else {
-                    eprintln!("NOTE: no AVX-512 on this CPU: QuantizeU8's AVX-512 path is not tested here");
+                    eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): QuantizeU8's AVX-512 path is not tested here");
                 }
             }
             for (name, got) in paths {
