@@ -42,8 +42,13 @@ fn fp32_plan_reproduces_the_official_tracker_on_building4() {
     let reference = read_boxes(&common::nanotrack_ref_dir().join("building4.txt"));
     assert_eq!(run.boxes.len(), reference.len());
     let ours = run.xywh();
-    let within = ours.iter().zip(&reference).filter(|(a, b)| a.iter().zip(*b).all(|(x, y)| (x - y).abs() <= 0.5)).count();
-    let worst = ours.iter().zip(&reference).map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)).fold(0.0, f64::max);
+    let within =
+        ours.iter().zip(&reference).filter(|(a, b)| a.iter().zip(*b).all(|(x, y)| (x - y).abs() <= 0.5)).count();
+    let worst = ours
+        .iter()
+        .zip(&reference)
+        .map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
     eprintln!("building4: {within}/{} frames within 0.5 px, worst {worst:.4} px", reference.len());
     assert!(within as f64 >= 0.99 * reference.len() as f64, "{within} of {} frames within 0.5 px", reference.len());
     // A trained tracker really tracks: most frames overlap the ground truth.
@@ -79,12 +84,15 @@ fn import_errors_name_the_file_and_the_problem() {
     assert!(e.contains("absent.onnx"), "{e}");
     // A config whose score map disagrees with the model's output.
     let cfg = tmp.path().join("config.yaml");
-    let yaml = std::fs::read_to_string(n.join("configv2.yaml")).unwrap().replace("CONTEXT_AMOUNT: 0.5", "CONTEXT_AMOUNT: 0.5\n    OUTPUT_SIZE: 25");
+    let yaml = std::fs::read_to_string(n.join("configv2.yaml"))
+        .unwrap()
+        .replace("CONTEXT_AMOUNT: 0.5", "CONTEXT_AMOUNT: 0.5\n    OUTPUT_SIZE: 25");
     std::fs::write(&cfg, yaml).unwrap();
     let e = import_err(&backbone, &head, Some(&cfg));
     assert!(e.starts_with(&cfg.display().to_string()) && e.contains("25x25") && e.contains("16x16"), "{e}");
     // A config whose search crop the head cannot take (its correlation is tied to 16x16).
-    let yaml = std::fs::read_to_string(n.join("configv2.yaml")).unwrap().replace("INSTANCE_SIZE: 255", "INSTANCE_SIZE: 287");
+    let yaml =
+        std::fs::read_to_string(n.join("configv2.yaml")).unwrap().replace("INSTANCE_SIZE: 255", "INSTANCE_SIZE: 287");
     std::fs::write(&cfg, yaml).unwrap();
     let e = import_err(&backbone, &head, Some(&cfg));
     assert!(e.starts_with(&cfg.display().to_string()) && e.contains("287x287") && e.contains("[1, 48, 18, 18]"), "{e}");
@@ -97,20 +105,39 @@ fn cli_imports_compiles_and_tracks() {
     let s = |p: &Path| p.to_str().unwrap().to_string();
     let out = common::ok(&common::prl(&["import", "nanotrack", "--out", &s(&model)]));
     assert!(out.contains("cls [1, 2, 16, 16], loc [1, 4, 16, 16]"), "{out}");
-    let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(model.join("manifest.json")).unwrap()).unwrap();
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(model.join("manifest.json")).unwrap()).unwrap();
     assert_eq!(manifest["tracker"]["family"], "nanotrack");
     assert_eq!(manifest["weights"]["kind"], "onnx");
     assert_eq!(manifest["weights"]["files"].as_array().unwrap().len(), 2);
     common::ok(&common::prl(&["compile", "--model", &s(&model), "--out", &s(&plan)]));
     let json = tmp.path().join("summary.json");
     let seq = common::sequence("wakeboard7");
-    let out = common::ok(&common::prl(&["track", "--plan", &s(&plan), "--sequence", &s(&seq), "--max-frames", "20", "--json", &s(&json)]));
+    let out = common::ok(&common::prl(&[
+        "track",
+        "--plan",
+        &s(&plan),
+        "--sequence",
+        &s(&seq),
+        "--max-frames",
+        "20",
+        "--json",
+        &s(&json),
+    ]));
     assert!(out.contains("mean IoU"), "{out}");
     let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     assert_eq!(summary["frames"], 20);
     assert!(summary["peak_rss_mb"].as_f64().unwrap() > 10.0);
     // PRL-Track settings on a NanoTrack model are refused.
-    let o = common::prl(&["compile", "--model", &s(&model), "--tracker", "models/prl-track/tracker.toml", "--out", &s(&plan)]);
+    let o = common::prl(&[
+        "compile",
+        "--model",
+        &s(&model),
+        "--tracker",
+        "models/prl-track/tracker.toml",
+        "--out",
+        &s(&plan),
+    ]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("the model is a nanotrack"));
 }
@@ -129,11 +156,32 @@ fn int8_plan_runs_integer_kernels_near_fp32_on_held_out_footage() {
     let s = |p: &Path| p.to_str().unwrap().to_string();
     let b4 = common::sequence("building4");
     // The thresholds made for PRL-Track's large layers leave nothing of NanoTrack: an error.
-    let o = common::prl(&["quantize", "--plan", &s(&fp32), "--calib", &s(&b4), "--frames-per-seq", "4", "--out", &s(&int8)]);
+    let o = common::prl(&[
+        "quantize",
+        "--plan",
+        &s(&fp32),
+        "--calib",
+        &s(&b4),
+        "--frames-per-seq",
+        "4",
+        "--out",
+        &s(&int8),
+    ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("no layer would be int8"), "{err}");
     assert!(!int8.exists(), "nothing written");
-    let args = ["--min-macs", "1000000", "--min-out-channels", "16", "--budget", "4", "--frames-per-seq", "16", "--method", "minmax"];
+    let args = [
+        "--min-macs",
+        "1000000",
+        "--min-out-channels",
+        "16",
+        "--budget",
+        "4",
+        "--frames-per-seq",
+        "16",
+        "--method",
+        "minmax",
+    ];
     let (fp32s, b4s, int8s) = (s(&fp32), s(&b4), s(&int8));
     let mut q = vec!["quantize", "--plan", &fp32s, "--calib", &b4s, "--out", &int8s];
     q.extend(args);
@@ -152,8 +200,23 @@ fn int8_plan_runs_integer_kernels_near_fp32_on_held_out_footage() {
     let w7 = s(&common::sequence("wakeboard7"));
     let j = s(&json);
     common::ok(&common::prl(&[
-        "compare", "--plan", &fp32s, "--plan", &int8s, "--sequence", &w7, "--crops-per-seq", "16", "--runs", "3",
-        "--max-frames", "30", "--threads", "2", "--json", &j,
+        "compare",
+        "--plan",
+        &fp32s,
+        "--plan",
+        &int8s,
+        "--sequence",
+        &w7,
+        "--crops-per-seq",
+        "16",
+        "--runs",
+        "3",
+        "--max-frames",
+        "30",
+        "--threads",
+        "2",
+        "--json",
+        &j,
     ]));
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     let errors = r["fidelity"][0]["errors"].as_array().unwrap();
@@ -176,7 +239,8 @@ fn a_backbone_and_a_whole_search_graph_import_to_the_same_model() {
     let tmp = tempfile::tempdir().unwrap();
     let search = tmp.path().join("search.onnx");
     std::fs::write(&search, &split.search).unwrap();
-    let family = FamilyImport { model: "nanotrack-v2".into(), tracker: prl_runtime::TrackerConfig::nanotrack(), config: None };
+    let family =
+        FamilyImport { model: "nanotrack-v2".into(), tracker: prl_runtime::TrackerConfig::nanotrack(), config: None };
     let parts = Parts::BackboneSearch { backbone, search: OnnxFile::read(&search).unwrap() };
     let whole = prl_compiler::import::import(&parts, &family).unwrap();
     assert_eq!(whole.manifest.search.inputs, split.manifest.search.inputs);

@@ -26,9 +26,9 @@ mod weights;
 pub use artefacts::{
     build_model, build_model_variant, preprocessing, BuiltModel, Manifest, WeightsSource, MODEL_MANIFEST,
 };
-pub use import::{nanotrack::import_nanotrack, FamilyImport, OnnxFile, Parts};
 pub use engine::{NetworkRunner, OnnxRunner};
 pub use error::{Error, Result};
+pub use import::{nanotrack::import_nanotrack, FamilyImport, OnnxFile, Parts};
 pub use plan::{compile, compile_int8, rebuild_model, CompiledPlan, TRACT_VERSION};
 pub use quant::{quantize, Calibration, Method, PerChannel, QuantizeOptions};
 pub use tensor::{relative_error, Tensor};

@@ -107,7 +107,8 @@ mod tests {
     fn prl_centre_cell_with_zero_regression() {
         let cfg = TrackerConfig::prl_track();
         let cells = 121;
-        let (pred, score) = decode(&cfg, &out(vec![vec![0.0; 4 * cells], vec![0.0; 2 * cells], vec![0.4; cells]])).unwrap();
+        let (pred, score) =
+            decode(&cfg, &out(vec![vec![0.0; 4 * cells], vec![0.0; 2 * cells], vec![0.4; cells]])).unwrap();
         // Centre cell (5,5): anchor 16*5 + 63 - 143 = 0; zero sizes.
         assert_eq!(pred[60], [0.0, 0.0, 0.0, 0.0]);
         assert_eq!(pred[0][..2], [-80.0, -80.0]);

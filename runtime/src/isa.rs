@@ -112,7 +112,9 @@ pub fn isa() -> &'static Isa {
 pub fn isa_warning() -> Option<String> {
     let cap = std::env::var("PRL_ISA").ok()?;
     Isa::probe().capped(&cap).is_none().then(|| {
-        format!("PRL_ISA={cap} is not one of generic, avx2, avx512, vnni, native: the CPU's own instruction sets are used")
+        format!(
+            "PRL_ISA={cap} is not one of generic, avx2, avx512, vnni, native: the CPU's own instruction sets are used"
+        )
     })
 }
 

@@ -47,13 +47,7 @@ pub fn markdown(r: &Report) -> String {
             let calib =
                 if p.calibration_sequences.is_empty() { "-".into() } else { p.calibration_sequences.join(", ") };
             let errs: String = f.errors.iter().map(|(_, e)| format!(" {e:.4} |")).collect();
-            let _ = writeln!(
-                s,
-                "| {} | {} |{errs} {:.1}% | {calib} |",
-                f.plan,
-                f.crops,
-                100.0 * f.best_cell_agreement
-            );
+            let _ = writeln!(s, "| {} | {} |{errs} {:.1}% | {calib} |", f.plan, f.crops, 100.0 * f.best_cell_agreement);
         }
     }
     let _ = writeln!(s, "\n### Tracking (OPE; IoU to the first plan's boxes, frames after the first)\n");

@@ -61,7 +61,9 @@ pub fn import_nanotrack(
 pub fn run(a: ImportArgs) -> anyhow::Result<()> {
     let pb = spinner("importing: checking both ONNX files and joining backbone and head");
     let model = match a.family {
-        prl_runtime::Family::Nanotrack => import_nanotrack(a.backbone.as_deref(), a.head.as_deref(), a.config.as_deref()),
+        prl_runtime::Family::Nanotrack => {
+            import_nanotrack(a.backbone.as_deref(), a.head.as_deref(), a.config.as_deref())
+        }
         f => unreachable!("parse_importable refuses {}", f.name()),
     };
     let written = model.and_then(|m| m.write(&a.out).map(|_| m).map_err(Into::into));
@@ -73,6 +75,10 @@ pub fn run(a: ImportArgs) -> anyhow::Result<()> {
     };
     println!("template graph: {} -> {}", shape(&m.template.inputs), shape(&m.template.outputs));
     println!("search graph: {} -> {}", shape(&m.search.inputs), shape(&m.search.outputs));
-    println!("tracker: {} settings recorded in the manifest (`prl compile --model {}` uses them)", m.model, a.out.display());
+    println!(
+        "tracker: {} settings recorded in the manifest (`prl compile --model {}` uses them)",
+        m.model,
+        a.out.display()
+    );
     Ok(())
 }

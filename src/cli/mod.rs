@@ -20,7 +20,11 @@ use clap::{Args, Parser, Subcommand};
 
 /// The deployment toolchain for Siamese UAV trackers (PRL-Track, NanoTrack).
 #[derive(Parser)]
-#[command(name = "prl", version, about = "Siamese UAV tracker toolchain (PRL-Track, NanoTrack): build or import, verify, compile plans, quantise, track")]
+#[command(
+    name = "prl",
+    version,
+    about = "Siamese UAV tracker toolchain (PRL-Track, NanoTrack): build or import, verify, compile plans, quantise, track"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -169,7 +169,11 @@ pub fn nanotrack_ref_dir() -> PathBuf {
     let dir = std::env::var_os("NANOTRACK_REF_DIR")
         .map(PathBuf::from)
         .unwrap_or_else(|| golden_dir().join("../nanotrack-v2-ref"));
-    assert!(dir.join("building4.txt").exists(), "NanoTrack reference not found at {} (set NANOTRACK_REF_DIR)", dir.display());
+    assert!(
+        dir.join("building4.txt").exists(),
+        "NanoTrack reference not found at {} (set NANOTRACK_REF_DIR)",
+        dir.display()
+    );
     dir
 }
 

@@ -40,7 +40,11 @@ impl OnnxFile {
     }
 
     fn source(&self, role: &str) -> SourceFile {
-        SourceFile { role: role.into(), path: self.path.display().to_string(), sha256: hex(&Sha256::digest(&self.bytes)) }
+        SourceFile {
+            role: role.into(),
+            path: self.path.display().to_string(),
+            sha256: hex(&Sha256::digest(&self.bytes)),
+        }
     }
 }
 
@@ -144,7 +148,10 @@ pub fn import(parts: &Parts, family: &FamilyImport) -> Result<BuiltModel> {
         if shape.len() != 4 || shape[1] != *channels {
             return Err(Error::format(
                 &other_file.path,
-                format!("output for `{name}` is {shape:?}; a {} tracker needs [1, {channels}, N, N]", cfg.family.name()),
+                format!(
+                    "output for `{name}` is {shape:?}; a {} tracker needs [1, {channels}, N, N]",
+                    cfg.family.name()
+                ),
             ));
         }
         if shape[2..] != [n, n] {
@@ -220,4 +227,3 @@ fn config_error(family: &FamilyImport, msg: String) -> Error {
         None => Error::Other(format!("{} settings: {msg}", family.model)),
     }
 }
-

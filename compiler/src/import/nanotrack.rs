@@ -7,7 +7,7 @@ use prl_runtime::TrackerConfig;
 use sha2::{Digest, Sha256};
 use yaml_rust2::{Yaml, YamlLoader};
 
-use super::{import, FamilyImport, OnnxFile, ConfigFile, Parts};
+use super::{import, ConfigFile, FamilyImport, OnnxFile, Parts};
 use crate::checkpoint::hex;
 use crate::{BuiltModel, Error, Result};
 
@@ -43,7 +43,10 @@ pub fn settings(yaml: &str, path: &Path) -> Result<TrackerConfig> {
         match &doc[section][key] {
             Yaml::BadValue => Ok(()),
             Yaml::Real(_) | Yaml::Integer(_) => {
-                *into = doc[section][key].as_f64().or_else(|| doc[section][key].as_i64().map(|v| v as f64)).unwrap_or(*into);
+                *into = doc[section][key]
+                    .as_f64()
+                    .or_else(|| doc[section][key].as_i64().map(|v| v as f64))
+                    .unwrap_or(*into);
                 Ok(())
             }
             other => Err(Error::format(path, format!("{section}.{key} is {other:?}, not a number"))),

@@ -47,7 +47,10 @@ fn concrete(v: &pb::ValueInfoProto) -> Option<Vec<usize>> {
 fn float_value(name: &str, shape: Option<&[usize]>) -> pb::ValueInfoProto {
     use pb::tensor_shape_proto::{dimension, Dimension};
     let shape = shape.map(|s| pb::TensorShapeProto {
-        dim: s.iter().map(|&d| Dimension { value: Some(dimension::Value::DimValue(d as i64)), ..Default::default() }).collect(),
+        dim: s
+            .iter()
+            .map(|&d| Dimension { value: Some(dimension::Value::DimValue(d as i64)), ..Default::default() })
+            .collect(),
     });
     let tensor = pb::type_proto::Tensor { elem_type: FLOAT, shape };
     pb::ValueInfoProto {
@@ -242,7 +245,8 @@ impl Onnx {
     /// is it: the one with that many channels where declared and unambiguous, else by position.
     pub fn order_outputs(&self, wanted: &[(&str, usize)]) -> Result<Vec<usize>> {
         let outs = &self.graph().output;
-        let channels: Vec<Option<usize>> = outs.iter().map(|o| dims(o).and_then(|d| d.get(1).copied().flatten())).collect();
+        let channels: Vec<Option<usize>> =
+            outs.iter().map(|o| dims(o).and_then(|d| d.get(1).copied().flatten())).collect();
         let by_channels: Option<Vec<usize>> = wanted
             .iter()
             .map(|(_, c)| {
@@ -256,10 +260,7 @@ impl Onnx {
             _ => {
                 let want: Vec<String> = wanted.iter().map(|(n, c)| format!("{n} ({c} channels)")).collect();
                 let outs: Vec<&pb::ValueInfoProto> = outs.iter().collect();
-                Err(graph_err(
-                    &self.path,
-                    format!("outputs {} are not {}", Self::describe(&outs), want.join(" and ")),
-                ))
+                Err(graph_err(&self.path, format!("outputs {} are not {}", Self::describe(&outs), want.join(" and "))))
             }
         }
     }

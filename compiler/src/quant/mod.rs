@@ -215,7 +215,8 @@ pub fn quantize(
         }
     }
     if !layers.iter().any(|l| l.decision == LayerDecision::Int8) {
-        let small = layers.iter().filter(|l| matches!(l.decision, LayerDecision::TooSmall | LayerDecision::FewChannels));
+        let small =
+            layers.iter().filter(|l| matches!(l.decision, LayerDecision::TooSmall | LayerDecision::FewChannels));
         return Err(Error::Quantize(format!(
             "no layer would be int8: of {} candidates, {} are under the thresholds (min-macs {}, min-out-channels {}) \
              and the others are kept f32; lower the thresholds for a small network (NanoTrack: --min-macs 1000000 \

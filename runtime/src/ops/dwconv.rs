@@ -45,7 +45,10 @@ impl std::fmt::Debug for DepthwiseConv {
 
 impl PartialEq for DepthwiseConv {
     fn eq(&self, other: &Self) -> bool {
-        self.shape == other.shape && self.batch == other.batch && same_bits(&self.weights, &other.weights) && same_bits(&self.bias, &other.bias)
+        self.shape == other.shape
+            && self.batch == other.batch
+            && same_bits(&self.weights, &other.weights)
+            && same_bits(&self.bias, &other.bias)
     }
 }
 
@@ -353,7 +356,9 @@ mod tests {
                 // SAFETY (of the call through this pointer): AVX-512F, AVX2 and FMA are present.
                 v.push(("avx512", |a, b, c, d, e, f, g| unsafe { kernel::rows_avx512(a, b, c, d, e, f, g) }));
             } else {
-                eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): DepthwiseConv's AVX-512 path is not tested here");
+                eprintln!(
+                    "NOTE: no AVX-512 here (or PRL_ISA caps it): DepthwiseConv's AVX-512 path is not tested here"
+                );
             }
         }
         v

@@ -337,7 +337,9 @@ mod tests {
     fn check(s: ConvShape) {
         if !has_vnni() {
             // The op is only made where VNNI may be used: say so, loudly.
-            eprintln!("NOTE: no AVX-512 VNNI here (or PRL_ISA caps it): PackedQConv's kernels are NOT tested on this machine");
+            eprintln!(
+                "NOTE: no AVX-512 VNNI here (or PRL_ISA caps it): PackedQConv's kernels are NOT tested on this machine"
+            );
             return;
         }
         let n_in = s.ci * s.h * s.w;

@@ -150,12 +150,20 @@ mod tests {
                     unsafe { kernel::quantize_avx512(&xs, &mut ys, scale, zp as i32) };
                     paths.push(("avx512", ys.clone()));
                 } else {
-                    eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): QuantizeU8's AVX-512 path is not tested here");
+                    eprintln!(
+                        "NOTE: no AVX-512 here (or PRL_ISA caps it): QuantizeU8's AVX-512 path is not tested here"
+                    );
                 }
             }
             for (name, got) in paths {
                 let bad = got.iter().zip(&want).position(|(a, b)| a != b);
-                assert!(bad.is_none(), "{name}, scale {scale}: x = {} gives {} not {}", xs[bad.unwrap()], got[bad.unwrap()], want[bad.unwrap()]);
+                assert!(
+                    bad.is_none(),
+                    "{name}, scale {scale}: x = {} gives {} not {}",
+                    xs[bad.unwrap()],
+                    got[bad.unwrap()],
+                    want[bad.unwrap()]
+                );
             }
         }
         // Beyond an i32, ONNX's saturation.
