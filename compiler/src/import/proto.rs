@@ -8,9 +8,8 @@ use prost::Message;
 use tract_onnx::pb;
 use tract_onnx::prelude::{Framework, InferenceModelExt};
 
+use crate::onnx::value_info;
 use crate::{Error, Result};
-
-const FLOAT: i32 = 1;
 
 /// An ONNX model read from a file, with the file's name for errors.
 #[derive(Debug, Clone)]
@@ -42,22 +41,6 @@ fn dims(v: &pb::ValueInfoProto) -> Option<Vec<Option<usize>>> {
 /// A declared shape with every dimension known.
 fn concrete(v: &pb::ValueInfoProto) -> Option<Vec<usize>> {
     dims(v)?.into_iter().collect()
-}
-
-fn float_value(name: &str, shape: Option<&[usize]>) -> pb::ValueInfoProto {
-    use pb::tensor_shape_proto::{dimension, Dimension};
-    let shape = shape.map(|s| pb::TensorShapeProto {
-        dim: s
-            .iter()
-            .map(|&d| Dimension { value: Some(dimension::Value::DimValue(d as i64)), ..Default::default() })
-            .collect(),
-    });
-    let tensor = pb::type_proto::Tensor { elem_type: FLOAT, shape };
-    pb::ValueInfoProto {
-        name: name.to_string(),
-        r#type: Some(pb::TypeProto { value: Some(pb::type_proto::Value::TensorType(tensor)), ..Default::default() }),
-        ..Default::default()
-    }
 }
 
 impl Onnx {
@@ -186,13 +169,13 @@ impl Onnx {
     pub fn set_input_shape(&mut self, i: usize, shape: &[usize]) {
         let slot = self.input_slots()[i];
         let g = self.graph_mut();
-        g.input[slot] = float_value(&g.input[slot].name, Some(shape));
+        g.input[slot] = value_info(&g.input[slot].name, Some(shape));
     }
 
     /// Declare the outputs' shapes.
     pub fn set_output_shapes(&mut self, shapes: &[Vec<usize>]) {
         for (o, s) in self.graph_mut().output.iter_mut().zip(shapes) {
-            *o = float_value(&o.name, Some(s));
+            *o = value_info(&o.name, Some(s));
         }
     }
 
@@ -203,7 +186,7 @@ impl Onnx {
         let g = self.graph_mut();
         g.value_info.clear();
         for o in &mut g.output {
-            *o = float_value(&o.name, None);
+            *o = value_info(&o.name, None);
         }
         let err = |e: tract_onnx::prelude::TractError| {
             graph_err(file, format!("tract cannot run it {what}: {}", format!("{e:#}").replace('\n', " ")))

@@ -47,13 +47,16 @@ pub struct Graph {
     values: HashSet<String>,
 }
 
-fn value_info(name: &str, shape: &[usize]) -> pb::ValueInfoProto {
+/// A float value of `shape` (no shape when `None`: left for inference).
+pub(crate) fn value_info(name: &str, shape: Option<&[usize]>) -> pb::ValueInfoProto {
     use pb::tensor_shape_proto::{dimension, Dimension};
-    let dim = shape
-        .iter()
-        .map(|&d| Dimension { value: Some(dimension::Value::DimValue(d as i64)), ..Default::default() })
-        .collect();
-    let tensor = pb::type_proto::Tensor { elem_type: FLOAT, shape: Some(pb::TensorShapeProto { dim }) };
+    let shape = shape.map(|s| pb::TensorShapeProto {
+        dim: s
+            .iter()
+            .map(|&d| Dimension { value: Some(dimension::Value::DimValue(d as i64)), ..Default::default() })
+            .collect(),
+    });
+    let tensor = pb::type_proto::Tensor { elem_type: FLOAT, shape };
     pb::ValueInfoProto {
         name: name.to_string(),
         r#type: Some(pb::TypeProto { value: Some(pb::type_proto::Value::TensorType(tensor)), ..Default::default() }),
@@ -93,7 +96,7 @@ impl Graph {
     /// A graph input of fixed shape (f32).
     pub fn input(&mut self, name: &str, shape: &[usize]) -> Result<Value> {
         let v = self.claim(name)?;
-        self.inputs.push(value_info(name, shape));
+        self.inputs.push(value_info(name, Some(shape)));
         Ok(v)
     }
 
@@ -102,7 +105,7 @@ impl Graph {
         if !self.values.contains(&value.0) {
             return Err(self.error(&value.0, "output of an unknown value"));
         }
-        self.outputs.push(value_info(&value.0, shape));
+        self.outputs.push(value_info(&value.0, Some(shape)));
         Ok(())
     }
 

@@ -8,5 +8,6 @@ mod norm;
 mod pool;
 mod shape;
 
+pub(crate) use builder::value_info;
 pub use builder::{Attr, Graph, Value, OPSET};
 pub use conv::ConvOpts;

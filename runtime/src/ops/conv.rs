@@ -65,10 +65,27 @@ impl ConvShape {
     }
 }
 
+impl ConvShape {
+    /// Write one input plane `src` (`[h, w]`) into its zero-padded form `dst` (`stride²` phases
+    /// of `[hq, wq]`, [`Self::phase`]); `dst`'s padding is left as it is (zero).
+    pub(crate) fn pad_plane(&self, src: &[f32], dst: &mut [f32]) {
+        let (hq, wq) = self.phase();
+        for (y, row) in src.chunks_exact(self.w).enumerate() {
+            let yp = y + self.pad[0];
+            if self.stride == 1 {
+                let at = yp * wq + self.pad[1];
+                dst[at..at + self.w].copy_from_slice(row);
+            } else {
+                scatter_row_s2(&mut dst[..4 * hq * wq], row, yp, self.pad[1], hq, wq);
+            }
+        }
+    }
+}
+
 /// Write one input `row`, padded row `yp` with `pad_left` columns of padding before it, into
 /// the four phases (`[row parity][column parity][hq][wq]`) of a plane padded for stride 2:
 /// even and odd columns each go to one phase row as a contiguous run.
-pub(crate) fn scatter_row_s2(phases: &mut [f32], row: &[f32], yp: usize, pad_left: usize, hq: usize, wq: usize) {
+fn scatter_row_s2(phases: &mut [f32], row: &[f32], yp: usize, pad_left: usize, hq: usize, wq: usize) {
     let row_of = |parity: usize| ((yp % 2) * 2 + parity) * hq * wq + (yp / 2) * wq;
     let p = pad_left;
     for (first, parity, col) in [(0, p & 1, p >> 1), (1, (p + 1) & 1, (p + 1) >> 1)] {
@@ -174,17 +191,9 @@ impl EvalOp for PackedConv {
         let mut padded = vec![0f32; ci * phases * hq * wq + MAX_PX + wq];
         let out = output_tensor(&[n, s.co, oh, ow], |out: &mut [f32]| {
             for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
+                let plane_in = phases * hq * wq;
                 for (c, src) in src.chunks_exact(h * w).enumerate() {
-                    for (y, row) in src.chunks_exact(w).enumerate() {
-                        let yp = y + s.pad[0];
-                        if s.stride == 1 {
-                            let at = (c * hq + yp) * wq + s.pad[1];
-                            padded[at..at + w].copy_from_slice(row);
-                            continue;
-                        }
-                        let phases = &mut padded[c * 4 * hq * wq..(c + 1) * 4 * hq * wq];
-                        scatter_row_s2(phases, row, yp, s.pad[1], hq, wq);
-                    }
+                    s.pad_plane(src, &mut padded[c * plane_in..(c + 1) * plane_in]);
                 }
                 par_chunks(dst, ROWS * plane, |b, out| {
                     let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];

@@ -1,6 +1,6 @@
 //! Depthwise convolutions with constant weights (MobileNet's 3x3 and 5x5 layers, stride 1 or 2)
-//! as [`DepthwiseConv`], a direct per-channel convolution whose output rows are accumulated in
-//! 32-column register blocks.
+//! as [`DepthwiseConv`], a direct per-channel convolution whose output is accumulated in register
+//! blocks of four rows by 32 (or 16) columns.
 //!
 //! tract runs these as `DepthWiseConv`, a loop that reached 2-2.4 GFLOP/s on NanoTrack's early
 //! layers (16-72 channels of 64x64 to 128x128) and took half of its search step. Here each
@@ -13,7 +13,7 @@ use std::sync::Arc;
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::conv::{scatter_row_s2, ConvShape};
+use super::conv::ConvShape;
 use super::{output_tensor, par_chunks, same_bits};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
@@ -63,13 +63,9 @@ impl DepthwiseConv {
         ensure!(weight.len() == c * shape.kh * shape.kw, "DepthwiseConv: {} weights for {shape:?}", weight.len());
         ensure!(bias.len() == 1 || bias.len() == c, "DepthwiseConv: {} bias values for {shape:?}", bias.len());
         let bias = (0..c).map(|o| if bias.len() == 1 { bias[0] } else { bias[o] }).collect();
-        let (hq, wq) = shape.phase();
-        let st = shape.stride;
-        let offsets = (0..shape.kh)
-            .flat_map(|i| (0..shape.kw).map(move |j| (((i % st) * st + j % st) * hq + i / st) * wq + j / st))
-            .collect();
+        let offsets = Arc::new(shape.tap_offsets(1));
         let (weights, bias) = (Arc::new(weight.to_vec()), Arc::new(bias));
-        Ok(DepthwiseConv { shape, batch, offsets: Arc::new(offsets), weights, bias })
+        Ok(DepthwiseConv { shape, batch, offsets, weights, bias })
     }
 
     /// A zeroed scratch plane for [`Self::channel`]: the padded input (its phases with stride
@@ -83,17 +79,8 @@ impl DepthwiseConv {
     /// One channel: `src` `[h, w]` into `dst` `[oh, ow]`, with `scratch` from [`Self::scratch`].
     fn channel(&self, ch: usize, src: &[f32], dst: &mut [f32], scratch: &mut [f32]) {
         let s = &self.shape;
-        let (hq, wq) = s.phase();
-        let st = s.stride;
-        for (y, row) in src.chunks_exact(s.w).enumerate() {
-            let yp = y + s.pad[0];
-            if st == 1 {
-                let at = yp * wq + s.pad[1];
-                scratch[at..at + s.w].copy_from_slice(row);
-                continue;
-            }
-            scatter_row_s2(&mut scratch[..4 * hq * wq], row, yp, s.pad[1], hq, wq);
-        }
+        s.pad_plane(src, scratch);
+        let wq = s.phase().1;
         let taps = s.kh * s.kw;
         let (_, ow) = s.out();
         kernel::rows(scratch, wq, &self.offsets, &self.weights[ch * taps..(ch + 1) * taps], self.bias[ch], dst, ow);
