@@ -142,6 +142,57 @@ fn cli_imports_compiles_and_tracks() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("the model is a nanotrack"));
 }
 
+/// A plan's recorded inputs and outputs (`prl bench --save-tensors`) replay to the same outputs
+/// (`prl verify --plan --tensors`, what a camera runs on a plan compiled elsewhere), and a
+/// recording that does not fit the plan is a one-line error naming the file.
+#[test]
+fn recorded_tensors_replay_and_bad_recordings_are_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = common::nanotrack_plan(tmp.path());
+    let rec = tmp.path().join("rec");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let seq = common::sequence("building4");
+    common::ok(&common::prl(&[
+        "bench",
+        "--plan",
+        &s(&plan),
+        "--runs",
+        "1",
+        "--top",
+        "0",
+        "--sequence",
+        &s(&seq),
+        "--save-tensors",
+        &s(&rec),
+    ]));
+    let index: serde_json::Value = serde_json::from_slice(&std::fs::read(rec.join("tensors.json")).unwrap()).unwrap();
+    assert_eq!(index["cls"], serde_json::json!([1, 2, 16, 16]));
+    let out = common::ok(&common::prl(&["verify", "--plan", &s(&plan), "--tensors", &s(&rec)]));
+    assert_eq!(out.lines().filter(|l| l.trim_end().ends_with(" ok")).count(), 3, "{out}");
+    // The library gives the numbers: the same plan on the same machine is exact.
+    let p = prl_runtime::Plan::load(&plan).unwrap();
+    let m = prl_runtime::replay(&rec, &p).unwrap();
+    assert!(m.iter().all(|t| t.rel == 0.0 && t.max_abs == 0.0), "{m:?}");
+    // A changed output fails the check; a truncated one and a wrong shape are errors.
+    let cls = rec.join("cls.f32");
+    let mut bytes = std::fs::read(&cls).unwrap();
+    bytes[0..4].copy_from_slice(&7.5f32.to_le_bytes());
+    std::fs::write(&cls, &bytes).unwrap();
+    let o = common::prl(&["verify", "--plan", &s(&plan), "--tensors", &s(&rec)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("cls exceed the tolerance"), "{err}");
+    std::fs::write(&cls, &bytes[..100]).unwrap();
+    let o = common::prl(&["verify", "--plan", &s(&plan), "--tensors", &s(&rec)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("cls.f32: 100 bytes"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    let text = std::fs::read_to_string(rec.join("tensors.json")).unwrap();
+    std::fs::write(rec.join("tensors.json"), text.replacen("16", "15", 1)).unwrap(); // cls [1, 2, 15, 16]
+    let o = common::prl(&["verify", "--plan", &s(&plan), "--tensors", &s(&rec)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("tensors.json") && err.contains("the plan's is"), "{err}");
+}
+
 /// Bounds on the int8 plan's relative error against fp32 on held-out wakeboard7 crops, when
 /// calibrated on 16 building4 frames (the README's plan, on 64 frames, measured cls 0.017 and
 /// loc 0.030 on 64 crops of wakeboard7 and wakeboard10).

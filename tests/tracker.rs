@@ -67,12 +67,20 @@ fn check_sequence(name: &str) {
         assert!(ours == official_crop(name, &format!("x_crop{}", k + 1)), "{name}: x crop {}", k + 1);
     }
 
-    // The tracker, frame by frame.
+    // The tracker, frame by frame. Under emulation (scripts/aarch64.sh) a frame takes seconds:
+    // `PRL_TRACE_FRAMES` bounds the frames checked, `PRL_TEST_THREADS` the network's threads.
+    let limit = std::env::var("PRL_TRACE_FRAMES").ok().map(|v| v.parse::<usize>().expect("PRL_TRACE_FRAMES: a count"));
+    if let Some(n) = limit.filter(|&n| n < frames.len()) {
+        eprintln!("NOTE: {name}: only the first {n} of {} frames are checked (PRL_TRACE_FRAMES)", frames.len());
+    }
+    if let Some(n) = std::env::var("PRL_TEST_THREADS").ok().and_then(|v| v.parse::<usize>().ok()) {
+        prl_runtime::set_threads(n);
+    }
     let plan = Plan::load(common::reference_plan()).unwrap();
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config);
     tracker.init(&frames[0], init).unwrap();
-    for (i, f) in frames.iter().enumerate().skip(1) {
+    for (i, f) in frames.iter().enumerate().skip(1).take(limit.unwrap_or(frames.len()).saturating_sub(1)) {
         let p = tracker.track(f).unwrap();
         let ours = [p.bbox.x, p.bbox.y, p.bbox.w, p.bbox.h];
         for k in 0..4 {

@@ -94,6 +94,62 @@ impl Isa {
     }
 }
 
+/// What a kernel path needs of the instruction sets.
+pub type Needs = fn(&Isa) -> bool;
+
+/// The f32 kernel paths of the runtime's operators, best first, each with what it needs: the one
+/// table every operator dispatches on (a new path is a row here and an arm in each kernel).
+pub const F32_KERNELS: [(F32Kernel, Needs); 4] = [
+    (F32Kernel::Avx512, |i| i.avx512),
+    (F32Kernel::Avx2Fma, |i| i.avx2_fma),
+    (F32Kernel::Neon, |i| i.neon),
+    (F32Kernel::Portable, |_| true),
+];
+
+/// One f32 kernel path (see [`F32_KERNELS`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum F32Kernel {
+    /// x86_64 AVX-512F (16 lanes, 32 registers), with AVX2 and FMA.
+    Avx512,
+    /// x86_64 AVX2 + FMA (8 lanes, 16 registers).
+    Avx2Fma,
+    /// aarch64 NEON (4 lanes, 32 registers), fused multiply-adds.
+    Neon,
+    /// Portable loops (unfused multiply-adds), for any CPU.
+    Portable,
+}
+
+impl F32Kernel {
+    /// The name `prl bench` prints.
+    pub fn name(self) -> &'static str {
+        match self {
+            F32Kernel::Avx512 => "avx512",
+            F32Kernel::Avx2Fma => "avx2+fma",
+            F32Kernel::Neon => "neon",
+            F32Kernel::Portable => "portable",
+        }
+    }
+}
+
+impl Isa {
+    /// The best f32 path this set allows: the first row of [`F32_KERNELS`] whose needs it meets.
+    pub fn f32_kernel(&self) -> F32Kernel {
+        F32_KERNELS.iter().find(|(_, needs)| needs(self)).map(|(k, _)| *k).unwrap_or(F32Kernel::Portable)
+    }
+
+    /// The int8 convolution path of [`crate::PackedQConv`]: `amx`, `vnni`, or `None` (tract's
+    /// own integer matrix kernels run the int8 layers: SDOT on aarch64).
+    pub fn int8_kernel(&self) -> Option<&'static str> {
+        if self.amx {
+            Some("amx")
+        } else if self.vnni {
+            Some("vnni")
+        } else {
+            None
+        }
+    }
+}
+
 static ISA: OnceLock<Isa> = OnceLock::new();
 
 /// The instruction sets the runtime's kernels use: the CPU's, capped by `PRL_ISA` (a value
@@ -137,5 +193,15 @@ mod tests {
         let none = Isa::default().capped("vnni").unwrap();
         assert!(!none.avx2_fma && !none.vnni);
         assert!(g.describe().contains("portable loops only"));
+        // The table picks the best path a set allows.
+        assert_eq!(all.f32_kernel(), F32Kernel::Avx512);
+        assert_eq!(a.f32_kernel(), F32Kernel::Avx2Fma);
+        assert_eq!(g.f32_kernel(), F32Kernel::Portable);
+        let arm = Isa { neon: true, dotprod: true, fp16: true, ..Isa::default() };
+        assert_eq!(arm.f32_kernel(), F32Kernel::Neon);
+        assert_eq!(arm.capped("generic").unwrap().f32_kernel(), F32Kernel::Portable);
+        assert_eq!(all.int8_kernel(), Some("amx"));
+        assert_eq!(v.int8_kernel(), Some("vnni"));
+        assert_eq!(arm.int8_kernel(), None);
     }
 }

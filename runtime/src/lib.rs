@@ -30,6 +30,7 @@ mod nnef;
 mod ops;
 mod plan;
 mod quantization;
+mod recording;
 mod resize;
 mod tracker;
 
@@ -38,7 +39,7 @@ pub use crop::{crop_to_tensor, get_subwindow};
 pub use cropper::{Cropper, TemplateCrop};
 pub use error::{Error, Result};
 pub use frame::{Frame, PixelLayout};
-pub use isa::{isa, isa_warning, Isa};
+pub use isa::{isa, isa_warning, F32Kernel, Isa, Needs, F32_KERNELS};
 pub use manifest::{
     GraphInfo, PlanManifest, Preprocessing, SourceFile, TensorInfo, WeightsInfo, PLAN_FORMAT_VERSION, PLAN_MANIFEST,
 };
@@ -49,5 +50,6 @@ pub use ops::{
 };
 pub use plan::{set_threads, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
+pub use recording::{record, replay, TensorMatch, RECORDING_INDEX};
 pub use resize::resize_linear_u8;
 pub use tracker::{BBox, Prediction, StepTimings, Tracker};

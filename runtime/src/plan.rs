@@ -103,6 +103,22 @@ impl Plan {
         Ok(TemplateFeatures(outs))
     }
 
+    /// Template features from flattened tensors (in the search graph's input order, as
+    /// [`TemplateFeatures::to_vecs`] gives them), checked against the manifest's shapes: to run
+    /// the search graph on features recorded elsewhere.
+    pub fn template_features(&self, vecs: Vec<Vec<f32>>) -> Result<TemplateFeatures> {
+        let outs = &self.manifest.template.outputs;
+        if vecs.len() != outs.len() {
+            return Err(Error::Input(format!("{} template feature tensors; the plan has {}", vecs.len(), outs.len())));
+        }
+        let values = outs
+            .iter()
+            .zip(vecs)
+            .map(|(t, v)| tensor("template", &t.shape, &v).map(TValue::from))
+            .collect::<Result<TVec<_>>>()?;
+        Ok(TemplateFeatures(values))
+    }
+
     /// Run the search graph on a float NCHW BGR crop (`[1,3,instance,instance]`) with a target's
     /// features.
     pub fn search(&self, x: &[f32], zf: &TemplateFeatures) -> Result<SearchOutput> {
@@ -126,6 +142,10 @@ pub struct NodeTime {
     pub time: std::time::Duration,
     /// Floating-point operations per run as tract counts them (2 per multiply-accumulate).
     pub flop: f64,
+    /// The kernel it runs: the runtime's path for its own operators (`avx512`, `avx2+fma`,
+    /// `neon`, `portable`, `vnni`, `amx`), tract's matrix kernel for its products
+    /// (`avx512_mmm_f32_32x12`, `arm64simd_mmm_i32_8x8_dot`, ...), empty otherwise.
+    pub kernel: String,
 }
 
 /// One operator of an optimised graph, as tract describes it.
@@ -152,6 +172,17 @@ impl Plan {
                 op: n.op().name().to_string(),
                 info: n.op().info().map(|v| v.join("; ")).unwrap_or_default(),
             })
+            .collect()
+    }
+
+    /// Nodes of the optimised search graph that multiply on integers: tract's i32 matrix
+    /// kernels (`mmm_i32` in their description: `avx512vnni_mmm_i32_16x16`,
+    /// `arm64simd_mmm_i32_8x8_dot`, ...) or the runtime's u8 x i8 convolution. Empty for an fp32
+    /// plan; an int8 plan's integer layers where the machine runs them as integers.
+    pub fn integer_nodes(&self) -> Vec<NodeInfo> {
+        self.search_nodes()
+            .into_iter()
+            .filter(|n| (n.op == "OptMatMul" && n.info.contains("mmm_i32")) || n.op == "PackedQConv")
             .collect()
     }
 
@@ -183,6 +214,7 @@ impl Plan {
                 op: n.op().name().to_string(),
                 time: totals[n.id] / runs as u32,
                 flop: node_flop(model, n),
+                kernel: crate::ops::kernel_name(n.op().name().as_ref(), &n.op().info().unwrap_or_default().join("; ")),
             })
             .collect();
         out.sort_by_key(|n| std::cmp::Reverse(n.time));

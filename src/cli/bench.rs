@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use prl_runtime::{set_threads, BBox, Frame, Plan, TemplateFeatures, Tracker};
+use prl_runtime::{set_threads, BBox, Frame, Plan, Tracker};
 use prl_track::{init_box_from_groundtruth, load_frame, Sequence};
 use serde::Serialize;
 
@@ -57,6 +57,8 @@ struct Op {
     ms: f64,
     share: f64,
     gflops: f64,
+    /// The kernel it runs (the runtime's path, or tract's matrix kernel).
+    kernel: String,
 }
 
 /// The network module a node of the search graph belongs to, from its name (PRL-Track's
@@ -157,7 +159,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let x = tracker.search_crop(&frame)?;
     let zf = tracker.features().expect("initialised just above");
     if let Some(dir) = &a.save_tensors {
-        save_tensors(dir, tracker.plan(), &tracker.exemplar_crop(&frame, init)?, &x, zf)?;
+        prl_runtime::record(dir, tracker.plan(), &tracker.exemplar_crop(&frame, init)?, &x)?;
     }
     let prof = if a.top > 0 { tracker.plan().profile_search(&x, zf, a.runs.min(5))? } else { vec![] };
     let total: f64 = prof.iter().map(|n| n.time.as_secs_f64()).sum();
@@ -172,6 +174,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
                 ms: secs * 1e3,
                 share: secs / total,
                 gflops: if secs > 0.0 && n.flop > 0.0 { n.flop / secs / 1e9 } else { 0.0 },
+                kernel: n.kernel.clone(),
             }
         })
         .collect();
@@ -232,10 +235,11 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         return finish(&a, &report);
     }
     println!("\nslowest operators of the search graph (tract profile, {:.1} ms in all):", total * 1e3);
-    println!("{:>9} {:>6} {:>8}  {:<16} {}", "ms", "share", "GFLOP/s", "op", "node");
+    println!("{:>9} {:>6} {:>8}  {:<16} {:<24} {}", "ms", "share", "GFLOP/s", "op", "kernel", "node");
     for o in &report.top_ops {
         let gflops = if o.gflops > 0.0 { format!("{:.1}", o.gflops) } else { "-".into() };
-        println!("{:>9.2} {:>5.1}% {:>8}  {:<16} {}", o.ms, o.share * 100.0, gflops, o.op, o.name);
+        let kernel = if o.kernel.is_empty() { "-" } else { &o.kernel };
+        println!("{:>9.2} {:>5.1}% {:>8}  {:<16} {:<24} {}", o.ms, o.share * 100.0, gflops, o.op, kernel, o.name);
     }
     println!("\nsearch graph time by module (same profile):");
     for m in &report.modules {
@@ -248,35 +252,5 @@ fn finish(a: &BenchArgs, report: &Report) -> anyhow::Result<()> {
     if let Some(path) = &a.json {
         write_atomically(path, &serde_json::to_vec_pretty(report)?)?;
     }
-    Ok(())
-}
-
-/// Write the template and search graphs' inputs and outputs on the benchmarked frame as raw
-/// little-endian f32 files, with their names and shapes in `tensors.json`.
-fn save_tensors(dir: &Path, plan: &Plan, z: &[f32], x: &[f32], zf: &TemplateFeatures) -> anyhow::Result<()> {
-    std::fs::create_dir_all(dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
-    let m = plan.manifest();
-    let out = plan.search(x, zf)?;
-    let mut index = serde_json::Map::new();
-    let mut put = |name: &str, shape: &[usize], data: &[f32]| -> anyhow::Result<()> {
-        anyhow::ensure!(
-            shape.iter().product::<usize>() == data.len(),
-            "{name}: shape {shape:?} does not fit {} values",
-            data.len()
-        );
-        let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
-        write_atomically(&dir.join(format!("{name}.f32")), &bytes)?;
-        index.insert(name.to_string(), serde_json::json!(shape));
-        Ok(())
-    };
-    put(&m.template.inputs[0].name, &m.template.inputs[0].shape, z)?;
-    put(&m.search.inputs[0].name, &m.search.inputs[0].shape, x)?;
-    for (t, v) in m.template.outputs.iter().zip(zf.to_vecs()?) {
-        put(&t.name, &t.shape, &v)?;
-    }
-    for (t, v) in m.search.outputs.iter().zip(&out.outputs) {
-        put(&t.name, &t.shape, v)?;
-    }
-    write_atomically(&dir.join("tensors.json"), &serde_json::to_vec_pretty(&index)?)?;
     Ok(())
 }

@@ -1,6 +1,6 @@
 //! `prl verify`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use clap::Args;
 use prl_compiler::{read_golden, verify};
@@ -23,9 +23,20 @@ pub struct VerifyArgs {
     /// Print the report as JSON.
     #[arg(long)]
     json: bool,
+    /// Check a compiled plan instead: run it on the inputs recorded in `--tensors` and compare
+    /// its outputs with the recorded ones (a plan compiled and recorded on one machine, checked
+    /// on another: `prl bench --save-tensors DIR` records).
+    #[arg(long, value_name = "DIR", requires = "tensors", conflicts_with_all = ["checkpoint", "random_seed"])]
+    plan: Option<PathBuf>,
+    /// Recorded inputs and outputs of `--plan` (a folder written by `prl bench --save-tensors`).
+    #[arg(long, value_name = "DIR", requires = "plan")]
+    tensors: Option<PathBuf>,
 }
 
 pub fn run(a: VerifyArgs) -> anyhow::Result<()> {
+    if let (Some(plan), Some(tensors)) = (&a.plan, &a.tensors) {
+        return replay(plan, tensors, a.tolerance, a.json);
+    }
     let golden = read_golden(&a.golden)?;
     let source = a.weights.source_or(default_source);
     let pb = spinner("building the network and running every stage with tract");
@@ -54,4 +65,48 @@ pub fn run(a: VerifyArgs) -> anyhow::Result<()> {
         anyhow::bail!("{}: {} exceed the tolerance {:e}", a.golden.display(), bad.join(", "), a.tolerance);
     }
     Ok(())
+}
+
+/// `prl verify --plan P --tensors D`: the plan on this machine against what was recorded.
+fn replay(plan: &Path, tensors: &Path, tolerance: f64, json: bool) -> anyhow::Result<()> {
+    let plan = prl_runtime::Plan::load(plan)?;
+    let matches = prl_runtime::replay(tensors, &plan)?;
+    let bad: Vec<&str> = matches.iter().filter(|m| !(m.rel <= tolerance)).map(|m| m.name.as_str()).collect();
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(
+                &serde_json::json!({ "tolerance": tolerance, "outputs": matches, "passed": bad.is_empty() })
+            )?
+        );
+    } else {
+        println!("runtime kernels may use: {}", prl_runtime::isa().describe());
+        if plan.manifest().quantization.is_some() {
+            let ints = plan.integer_nodes();
+            let mut kernels: Vec<String> = ints.iter().map(|n| kernel_name(n)).collect();
+            kernels.sort();
+            kernels.dedup();
+            println!("integer products: {} nodes ({})", ints.len(), kernels.join(", "));
+        }
+        println!(
+            "{:<9} {:<10} {:>12} {:>12}  result (tolerance {:e})",
+            "graph", "output", "rel error", "max abs", tolerance
+        );
+        for m in &matches {
+            let ok = if m.rel <= tolerance { "ok" } else { "FAIL" };
+            println!("{:<9} {:<10} {:>12.3e} {:>12.3e}  {ok}", m.graph, m.name, m.rel, m.max_abs);
+        }
+    }
+    anyhow::ensure!(bad.is_empty(), "{}: {} exceed the tolerance {tolerance:e}", tensors.display(), bad.join(", "));
+    Ok(())
+}
+
+/// The kernel an integer node runs: tract's matrix kernel named in its description, or the
+/// runtime's convolution.
+fn kernel_name(n: &prl_runtime::NodeInfo) -> String {
+    n.info
+        .split(|c: char| !(c.is_alphanumeric() || c == '_'))
+        .find(|w| w.contains("mmm_i32"))
+        .unwrap_or(&n.op)
+        .to_string()
 }

@@ -128,10 +128,16 @@ pub fn f32_bytes(v: &[f32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 
-/// A plan compiled from the reference checkpoint, once per test process (kept for its lifetime).
+/// A plan compiled from the reference checkpoint, once per test process (kept for its lifetime);
+/// `$PRL_REFERENCE_PLAN` names one compiled elsewhere instead (the aarch64 check under qemu runs
+/// the goldens on the plan compiled on x86: plans are portable).
 pub fn reference_plan() -> PathBuf {
     static PLAN: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
     PLAN.get_or_init(|| {
+        if let Some(dir) = std::env::var_os("PRL_REFERENCE_PLAN") {
+            eprintln!("NOTE: the reference plan is $PRL_REFERENCE_PLAN = {}", PathBuf::from(&dir).display());
+            return PathBuf::from(dir);
+        }
         let source = prl_compiler::WeightsSource::Checkpoint(golden_dir().join("checkpoint.pth"));
         let model = prl_compiler::build_model(&source).expect("build");
         let plan = prl_compiler::compile(&model, &prl_runtime::TrackerConfig::default()).expect("compile");
@@ -193,12 +199,8 @@ pub fn nanotrack_plan(dir: &std::path::Path) -> PathBuf {
     out
 }
 
-/// Nodes of a plan's optimised search graph that multiply on integers: tract's i32 matmul
-/// kernels, or the runtime's u8 x i8 convolution (on CPUs with AVX-512 VNNI).
+/// Nodes of a plan's optimised search graph that multiply on integers (see
+/// [`prl_runtime::Plan::integer_nodes`]).
 pub fn int8_kernel_nodes(plan: &prl_runtime::Plan) -> Vec<String> {
-    plan.search_nodes()
-        .into_iter()
-        .filter(|n| (n.op == "OptMatMul" && n.info.contains("mmm_i32")) || n.op == "PackedQConv")
-        .map(|n| n.name)
-        .collect()
+    plan.integer_nodes().into_iter().map(|n| n.name).collect()
 }

@@ -7,6 +7,7 @@
 //! (not a multiple of 4). Here each head is a few vectorised loops, heads spread over the
 //! thread pool. Matched on the einsum expressions the builder's attention makes.
 
+use crate::isa::F32Kernel;
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::einsum::EinSum;
 use tract_nnef::tract_core::ops::nn::{Softmax, SoftmaxKind};
@@ -124,17 +125,17 @@ const NR: usize = 16;
 /// `ldb` (a multiple of [`NR`], at least `n`, zero past `n`), `dst` rows of `n`. Sums in order
 /// of `k`.
 fn gemm(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
-    #[cfg(target_arch = "x86_64")]
-    if super::avx512_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { gemm_avx512(dst, n, a, kl, b, ldb) };
+    match crate::isa().f32_kernel() {
+        // SAFETY: the CPU has the features the function is compiled for (the table's needs).
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx512 => unsafe { gemm_avx512(dst, n, a, kl, b, ldb) },
+        // SAFETY: as above.
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx2Fma => unsafe { gemm_fma(dst, n, a, kl, b, ldb) },
+        // NEON: the 6 x 16 tile is 24 of the 32 registers, fused.
+        F32Kernel::Neon => gemm_generic::<true>(dst, n, a, kl, b, ldb),
+        _ => gemm_generic::<false>(dst, n, a, kl, b, ldb),
     }
-    #[cfg(target_arch = "x86_64")]
-    if super::avx2_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { gemm_fma(dst, n, a, kl, b, ldb) };
-    }
-    gemm_generic::<{ cfg!(target_arch = "aarch64") }>(dst, n, a, kl, b, ldb)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -205,17 +206,15 @@ impl EvalOp for RowSoftmax {
 }
 
 fn softmax_row(r: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    if super::avx512_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { softmax_row_avx512(r) };
+    match crate::isa().f32_kernel() {
+        // SAFETY: the CPU has the features the function is compiled for (the table's needs).
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx512 => unsafe { softmax_row_avx512(r) },
+        // SAFETY: as above.
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx2Fma => unsafe { softmax_row_fma(r) },
+        _ => softmax_row_generic(r),
     }
-    #[cfg(target_arch = "x86_64")]
-    if super::avx2_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { softmax_row_fma(r) };
-    }
-    softmax_row_generic(r)
 }
 
 #[cfg(target_arch = "x86_64")]

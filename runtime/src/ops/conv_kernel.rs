@@ -9,6 +9,8 @@
 
 /// Output channels per tile (the packing's block).
 pub(crate) const ROWS: usize = 8;
+
+use crate::isa::F32Kernel;
 /// Positions per tile of the widest kernel (two AVX-512 registers).
 pub(crate) const MAX_PX: usize = 32;
 
@@ -37,19 +39,19 @@ impl Layout {
 pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
     assert!(weights.len() == l.taps.len() * ROWS);
     assert!(l.taps.iter().all(|&t| t + l.positions() + MAX_PX <= padded.len()));
-    #[cfg(target_arch = "x86_64")]
-    if super::avx512_fma() {
+    match crate::isa().f32_kernel() {
         // SAFETY: the CPU has AVX-512F; every load stays in `padded` and `weights` (asserted).
-        unsafe { positions_avx512(l, padded, weights, bias, out) };
-        return;
-    }
-    #[cfg(target_arch = "x86_64")]
-    if super::avx2_fma() {
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx512 => unsafe { positions_avx512(l, padded, weights, bias, out) },
         // SAFETY: the CPU has the features the function is compiled for.
-        unsafe { positions_avx2_fma(l, padded, weights, bias, out) };
-        return;
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx2Fma => unsafe { positions_avx2_fma(l, padded, weights, bias, out) },
+        // SAFETY: NEON is part of the aarch64 baseline; every load stays in `padded` and
+        // `weights` (asserted).
+        #[cfg(target_arch = "aarch64")]
+        F32Kernel::Neon => unsafe { positions_neon(l, padded, weights, bias, out) },
+        _ => positions::<false>(l, padded, weights, bias, out),
     }
-    positions::<{ cfg!(target_arch = "aarch64") }>(l, padded, weights, bias, out);
 }
 
 /// Write a tile's `acc[r][q]` (position `p0 + q`) to the output planes, dropping the wide
@@ -149,6 +151,71 @@ unsafe fn positions_avx512(l: &Layout, padded: &[f32], weights: &[f32], bias: &[
     }
 }
 
+/// Positions per NEON tile: three 4-lane registers.
+#[cfg(target_arch = "aarch64")]
+const NEON_PX: usize = 12;
+
+/// NEON tiles of 12 positions: 24 accumulators (8 channels x 3 registers), three input loads
+/// and two weight loads per tap, each weight taken by lane (`FMLA v.4s, v.4s, v.s[l]`): 29 of
+/// the 32 registers. Taps are taken `CHUNK` at a time over every tile, as on AVX-512.
+#[cfg(target_arch = "aarch64")]
+#[target_feature(enable = "neon")]
+unsafe fn positions_neon(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
+    use std::arch::aarch64::*;
+    const CHUNK: usize = 128;
+    const TILE: usize = ROWS * NEON_PX;
+    let tiles = l.positions().div_ceil(NEON_PX);
+    let mut sums = vec![0f32; tiles * TILE];
+    for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
+        for (tile, sums) in sums.chunks_exact_mut(TILE).enumerate() {
+            // SAFETY (pointer reads and writes): `channel_block` asserted every tap's
+            // `MAX_PX` (>= 12) values from any position in `padded`; `weights` holds `ROWS`
+            // values per tap; `sums` holds a whole tile.
+            unsafe {
+                let s = sums.as_mut_ptr();
+                let mut a = [vdupq_n_f32(0.0); 3 * ROWS];
+                if c > 0 {
+                    for (q, a) in a.iter_mut().enumerate() {
+                        *a = vld1q_f32(s.add(4 * q));
+                    }
+                }
+                let base = padded.as_ptr().add(tile * NEON_PX);
+                let mut w = weights.as_ptr().add(c * CHUNK * ROWS);
+                for &t in taps {
+                    let x = [vld1q_f32(base.add(t)), vld1q_f32(base.add(t + 4)), vld1q_f32(base.add(t + 8))];
+                    let (w0, w1) = (vld1q_f32(w), vld1q_f32(w.add(4)));
+                    macro_rules! row {
+                        ($r:expr, $wv:expr, $lane:expr) => {
+                            for q in 0..3 {
+                                a[3 * $r + q] = vfmaq_laneq_f32::<$lane>(a[3 * $r + q], x[q], $wv);
+                            }
+                        };
+                    }
+                    row!(0, w0, 0);
+                    row!(1, w0, 1);
+                    row!(2, w0, 2);
+                    row!(3, w0, 3);
+                    row!(4, w1, 0);
+                    row!(5, w1, 1);
+                    row!(6, w1, 2);
+                    row!(7, w1, 3);
+                    w = w.add(ROWS);
+                }
+                for (q, a) in a.iter().enumerate() {
+                    vst1q_f32(s.add(4 * q), *a);
+                }
+            }
+        }
+    }
+    for (tile, sums) in sums.chunks_exact(TILE).enumerate() {
+        let mut acc = [[0f32; NEON_PX]; ROWS];
+        for (a, s) in acc.iter_mut().zip(sums.chunks_exact(NEON_PX)) {
+            a.copy_from_slice(s);
+        }
+        scatter(l, &acc, bias, tile * NEON_PX, out);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -173,5 +240,16 @@ mod tests {
         let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
         assert!(worst < 1e-3, "off by {worst}");
         assert!(a.iter().all(|v| *v != 0.0));
+        // Every fused path (AVX-512, AVX2, NEON) sums in the same order with one rounding per
+        // multiply-add: the same bits as the portable fused loop, so plans agree across CPUs.
+        #[cfg(target_arch = "x86_64")]
+        let fused = super::super::avx2_fma();
+        #[cfg(not(target_arch = "x86_64"))]
+        let fused = cfg!(target_arch = "aarch64");
+        if fused {
+            let mut c = a.clone();
+            positions::<true>(&l, &padded, &weights, &bias, &mut c);
+            assert!(a == c, "the dispatched fused kernel differs from the portable fused loop");
+        }
     }
 }

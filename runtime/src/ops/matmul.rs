@@ -110,8 +110,8 @@ fn tile(panel: &[f32], x: &[f32], k: usize, j0: usize, rows: usize) -> [[f32; PA
     // Rows past the last are the last again (computed, not stored).
     let xs: [&[f32]; ROWS] = std::array::from_fn(|r| &x[(j0 + r.min(rows - 1)) * k..][..k]);
     #[cfg(target_arch = "x86_64")]
-    if super::avx512_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
+    if crate::isa().f32_kernel() == crate::isa::F32Kernel::Avx512 {
+        // SAFETY: the CPU has the features the function is compiled for (the table's needs).
         return unsafe { tile_avx512(panel, xs) };
     }
     let mut out = [[0f32; PANEL]; ROWS];
@@ -157,12 +157,16 @@ unsafe fn tile_avx512(panel: &[f32], xs: [&[f32]; ROWS]) -> [[f32; PANEL]; ROWS]
 
 /// Half a panel (16 features) on 16-lane registers: AVX2 + FMA, NEON, or plain.
 fn tile_half(panel: &[f32], half: usize, xs: [&[f32]; ROWS]) -> [[f32; 16]; ROWS] {
-    #[cfg(target_arch = "x86_64")]
-    if super::avx2_fma() {
-        // SAFETY: the CPU has the features the function is compiled for.
-        return unsafe { tile_half_fma(panel, half, xs) };
+    use crate::isa::F32Kernel;
+    match crate::isa().f32_kernel() {
+        // SAFETY: the CPU has the features the function is compiled for (AVX-512 implies
+        // AVX2 + FMA).
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx512 | F32Kernel::Avx2Fma => unsafe { tile_half_fma(panel, half, xs) },
+        // NEON: 6 rows x 16 features is 24 of the 32 registers, fused.
+        F32Kernel::Neon => tile_generic::<16, true>(panel, half * 16, xs),
+        _ => tile_generic::<16, false>(panel, half * 16, xs),
     }
-    tile_generic::<16, { cfg!(target_arch = "aarch64") }>(panel, half * 16, xs)
 }
 
 #[cfg(target_arch = "x86_64")]

@@ -149,22 +149,41 @@ fn same_bits(a: &[f32], b: &[f32]) -> bool {
 }
 
 /// Whether the kernels may use AVX2 and FMA ([`crate::isa`]: the CPU has them and `PRL_ISA`
-/// allows them).
-#[cfg(target_arch = "x86_64")]
+/// allows them): which paths the unit tests can run (the operators dispatch on
+/// [`crate::isa::F32_KERNELS`]).
+#[cfg(all(test, target_arch = "x86_64"))]
 fn avx2_fma() -> bool {
     crate::isa().avx2_fma
 }
 
 /// Whether the kernels may use AVX-512F (with AVX2 and FMA): the 16-lane paths of the f32
-/// kernels compiled for `avx512f,avx2,fma`.
-#[cfg(target_arch = "x86_64")]
+/// kernels compiled for `avx512f,avx2,fma` (for the unit tests, as above).
+#[cfg(all(test, target_arch = "x86_64"))]
 fn avx512_fma() -> bool {
     crate::isa().avx512
 }
 
 /// Whether the CPU and OS run AMX int8 tiles (before any `PRL_ISA` cap).
+#[cfg(target_arch = "x86_64")]
 pub(crate) fn amx_available() -> bool {
     qconv_amx::available()
+}
+
+/// The kernel a node of an optimised graph runs, from its operator's name and tract's
+/// description of it (see [`crate::NodeTime::kernel`]).
+pub(crate) fn kernel_name(op: &str, info: &str) -> String {
+    let isa = crate::isa();
+    match op {
+        "PackedConv" | "DepthwiseConv" | "DepthwiseXCorr" | "ConstMatMul" | "AttnScores" | "AttnMix" | "RowSoftmax"
+        | "QuantizeU8" => isa.f32_kernel().name().to_string(),
+        "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
+        "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" => "portable (vectorised)".to_string(),
+        _ => info
+            .split(|c: char| !(c.is_alphanumeric() || c == '_'))
+            .find(|w| w.contains("_mmm_"))
+            .unwrap_or("")
+            .to_string(),
+    }
 }
 
 /// A pointer that threads writing disjoint elements share.

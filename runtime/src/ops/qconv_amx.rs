@@ -26,11 +26,9 @@ const CO_BLOCK: usize = 2 * T;
 const POS_BLOCK: usize = 2 * T;
 
 /// Whether this CPU and OS run AMX int8 tiles.
+#[cfg(target_arch = "x86_64")]
 pub(crate) fn available() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    return tract_linalg::x86_64::amx::has_amx_int8();
-    #[cfg(not(target_arch = "x86_64"))]
-    false
+    tract_linalg::x86_64::amx::has_amx_int8()
 }
 
 /// Weights packed as B tiles, and the input offset of every step.

@@ -42,17 +42,17 @@ mod kernel {
     /// Quantise `xs` into `ys` on the best path this CPU has.
     pub(super) fn quantize(xs: &[f32], ys: &mut [u8], scale: f32, zp: i32) {
         #[cfg(target_arch = "x86_64")]
-        {
-            if super::super::avx512_fma() {
-                // SAFETY: the CPU has AVX-512F, AVX2 and FMA (checked above).
-                return unsafe { quantize_avx512(xs, ys, scale, zp) };
-            }
-            if super::super::avx2_fma() {
-                // SAFETY: the CPU has AVX2 and FMA (checked above).
-                return unsafe { quantize_avx2(xs, ys, scale, zp) };
-            }
+        use crate::isa::F32Kernel;
+        match crate::isa().f32_kernel() {
+            // SAFETY: the CPU has AVX-512F, AVX2 and FMA (the table's needs).
+            #[cfg(target_arch = "x86_64")]
+            F32Kernel::Avx512 => unsafe { quantize_avx512(xs, ys, scale, zp) },
+            // SAFETY: the CPU has AVX2 and FMA (the table's needs).
+            #[cfg(target_arch = "x86_64")]
+            F32Kernel::Avx2Fma => unsafe { quantize_avx2(xs, ys, scale, zp) },
+            // NEON is the aarch64 baseline: the portable loop compiles to `frintn` on 4 lanes.
+            _ => quantize_generic(xs, ys, scale, zp),
         }
-        quantize_generic(xs, ys, scale, zp)
     }
 
     #[cfg(target_arch = "x86_64")]

@@ -55,19 +55,100 @@ pub(crate) fn correlate_channel(
         dst[..g.w].copy_from_slice(src);
         dst[g.w..].fill(0.0);
     }
-    #[cfg(target_arch = "x86_64")]
-    if super::avx512_fma() {
-        // SAFETY: the CPU has the features the function is compiled for (checked just above).
-        unsafe { strips_avx512(g, scratch, kernel, bias, out) };
-        return;
+    use crate::isa::F32Kernel;
+    match crate::isa().f32_kernel() {
+        // SAFETY: the CPU has the features the function is compiled for (the table's needs).
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx512 => unsafe { strips_avx512(g, scratch, kernel, bias, out) },
+        // SAFETY: as above.
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx2Fma => unsafe { strips_avx2_fma(g, scratch, kernel, bias, out) },
+        // SAFETY: NEON is part of the aarch64 baseline (and the probe found it).
+        #[cfg(target_arch = "aarch64")]
+        F32Kernel::Neon => unsafe { strips_neon(g, scratch, kernel, bias, out) },
+        _ => strips::<false>(g, scratch, kernel, bias, out),
     }
-    #[cfg(target_arch = "x86_64")]
-    if super::avx2_fma() {
-        // SAFETY: the CPU has the features the function is compiled for (checked just above).
-        unsafe { strips_avx2_fma(g, scratch, kernel, bias, out) };
-        return;
+}
+
+/// NEON: strips of 16 columns (four 4-lane registers), four output rows at a time: 16
+/// accumulators and four input loads per kernel tap, so each load serves up to four kernel
+/// rows. Fused multiply-adds in the generic order: the same bits as the AVX paths.
+#[cfg(target_arch = "aarch64")]
+#[target_feature(enable = "neon")]
+unsafe fn strips_neon(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
+    const ROWS: usize = 4;
+    let (ow, oh) = (g.out_w(), g.out_h());
+    let mut x0 = 0;
+    while x0 < ow {
+        let cols = (ow - x0).min(LANES);
+        let mut y = 0;
+        while y < oh {
+            let rows = if oh - y >= ROWS { ROWS } else { 1 };
+            // SAFETY: NEON is enabled here; the loads stay in `padded` (rows padded to whole
+            // 16-column blocks), the stores in `out` (`cols` values a row).
+            unsafe {
+                match (rows, cols.div_ceil(4)) {
+                    (ROWS, 1) => rows_neon::<ROWS, 1>(g, padded, kernel, bias, out, y, x0, cols),
+                    (ROWS, 2) => rows_neon::<ROWS, 2>(g, padded, kernel, bias, out, y, x0, cols),
+                    (ROWS, 3) => rows_neon::<ROWS, 3>(g, padded, kernel, bias, out, y, x0, cols),
+                    (ROWS, _) => rows_neon::<ROWS, 4>(g, padded, kernel, bias, out, y, x0, cols),
+                    (_, 1) => rows_neon::<1, 1>(g, padded, kernel, bias, out, y, x0, cols),
+                    (_, 2) => rows_neon::<1, 2>(g, padded, kernel, bias, out, y, x0, cols),
+                    (_, 3) => rows_neon::<1, 3>(g, padded, kernel, bias, out, y, x0, cols),
+                    _ => rows_neon::<1, 4>(g, padded, kernel, bias, out, y, x0, cols),
+                }
+            }
+            y += rows;
+        }
+        x0 += cols;
     }
-    strips::<{ cfg!(target_arch = "aarch64") }>(g, scratch, kernel, bias, out);
+}
+
+/// Output rows `y..y+R`, columns `x0..x0+cols` (`B` registers of 4), as [`rows_avx512`].
+#[cfg(target_arch = "aarch64")]
+#[target_feature(enable = "neon")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn rows_neon<const R: usize, const B: usize>(
+    g: Geometry,
+    padded: &[f32],
+    kernel: &[f32],
+    bias: f32,
+    out: &mut [f32],
+    y: usize,
+    x0: usize,
+    cols: usize,
+) {
+    use std::arch::aarch64::*;
+    let (wp, ow) = (g.padded_w(), g.out_w());
+    assert!((y + R + g.kh - 1) * wp <= padded.len() && x0 + 4 * B + g.kw - 1 <= wp && kernel.len() == g.kh * g.kw);
+    assert!(cols <= 4 * B && (y + R - 1) * ow + x0 + cols <= out.len());
+    let mut acc = [[vdupq_n_f32(bias); B]; R];
+    for r in 0..g.kh + R - 1 {
+        // SAFETY: row `y + r` lies in `padded` (asserted above).
+        let row = unsafe { padded.as_ptr().add((y + r) * wp + x0) };
+        for j in 0..g.kw {
+            // SAFETY: within the row (asserted above).
+            let v: [float32x4_t; B] = std::array::from_fn(|b| unsafe { vld1q_f32(row.add(j + 4 * b)) });
+            for (q, acc) in acc.iter_mut().enumerate() {
+                if r >= q && r - q < g.kh {
+                    let k = kernel[(r - q) * g.kw + j];
+                    for (a, v) in acc.iter_mut().zip(v) {
+                        *a = vfmaq_n_f32(*a, v, k);
+                    }
+                }
+            }
+        }
+    }
+    for (q, acc) in acc.iter().enumerate() {
+        let dst = &mut out[(y + q) * ow + x0..(y + q) * ow + x0 + cols];
+        for (b, a) in acc.iter().enumerate() {
+            let n = cols.saturating_sub(b * 4).min(4);
+            let mut lanes = [0f32; 4];
+            // SAFETY: four floats into a local array.
+            unsafe { vst1q_f32(lanes.as_mut_ptr(), *a) };
+            dst[b * 4..b * 4 + n].copy_from_slice(&lanes[..n]);
+        }
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -247,6 +328,16 @@ mod tests {
                 // SAFETY: the CPU has AVX2 and FMA.
                 unsafe { strips_avx2_fma(g, &scratch, &kernel, 0.25, &mut fma) };
                 paths.push(("avx2", fma));
+            }
+            #[cfg(target_arch = "aarch64")]
+            {
+                let mut neon = vec![f32::NAN; out.len()];
+                // SAFETY: NEON is part of the aarch64 baseline.
+                unsafe { strips_neon(g, &scratch, &kernel, 0.25, &mut neon) };
+                let mut fused = vec![f32::NAN; out.len()];
+                strips::<true>(g, &scratch, &kernel, 0.25, &mut fused);
+                assert!(neon == fused, "{h}x{w} by {kh}x{kw}: NEON differs from the portable fused loop");
+                paths.push(("neon", neon));
             }
             for (path, got) in paths {
                 let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
