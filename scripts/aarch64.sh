@@ -78,8 +78,9 @@ check() {
             --save-tensors "$work/$p-rec" >/dev/null
     done
     local qemu=(qemu-aarch64 -L /usr/aarch64-linux-gnu -cpu "$QEMU_CPU")
-    echo "== aarch64 (qemu -cpu $QEMU_CPU): the runtime's unit tests"
+    echo "== aarch64 (qemu -cpu $QEMU_CPU): the runtime's unit tests, NEON and portable paths"
     cargo test --release --target "$TARGET" -p prl-runtime --lib
+    PRL_ISA=generic cargo test --release --target "$TARGET" -p prl-runtime --lib
     echo "== aarch64: x86 plans against their x86 recordings"
     for p in prl-plan nanotrack-plan; do
         "${qemu[@]}" "$arm" verify --plan "$work/$p" --tensors "$work/$p-rec" --tolerance 1e-4

@@ -1,6 +1,7 @@
 //! The CPU's instruction sets as one value, probed once, and the cap the environment variable
 //! `PRL_ISA` puts on them, so that any machine can run (and CI can test) the lower paths of the
-//! runtime's own kernels: `PRL_ISA=generic` (portable loops only), `avx2` (AVX2 + FMA),
+//! runtime's own kernels: `PRL_ISA=generic` (portable loops only), `neon` (aarch64: NEON and
+//! the dot product), `avx2` (AVX2 + FMA),
 //! `avx512` (AVX-512F, no VNNI or AMX), `vnni` (AVX-512 VNNI, no AMX), unset or `native`
 //! (everything the CPU has). The cap applies to the runtime's operators; tract's own matrix
 //! kernels choose theirs from the CPU.
@@ -51,12 +52,14 @@ impl Isa {
         isa
     }
 
-    /// This set with nothing above `cap` (`generic`, `avx2`, `avx512`, `vnni`, `native`);
+    /// This set with nothing above `cap` (`generic`, `avx2`, `avx512`, `vnni`, `native`; on
+    /// aarch64 `neon` keeps NEON and the dot product, as `avx2` and above do, and drops fp16);
     /// `None` for a name it does not know.
     pub fn capped(self, cap: &str) -> Option<Isa> {
         let (level, name) = match cap.trim().to_ascii_lowercase().as_str() {
             "generic" => (0, "generic"),
             "avx2" => (1, "avx2"),
+            "neon" => (1, "neon"),
             "avx512" => (2, "avx512"),
             "vnni" => (3, "vnni"),
             "native" | "" => return Some(self),
@@ -137,13 +140,15 @@ impl Isa {
         F32_KERNELS.iter().find(|(_, needs)| needs(self)).map(|(k, _)| *k).unwrap_or(F32Kernel::Portable)
     }
 
-    /// The int8 convolution path of [`crate::PackedQConv`]: `amx`, `vnni`, or `None` (tract's
-    /// own integer matrix kernels run the int8 layers: SDOT on aarch64).
+    /// The int8 convolution path of [`crate::PackedQConv`]: `amx`, `vnni`, `sdot` (aarch64's
+    /// dot product), or `None` (tract's own integer matrix kernels run the int8 layers).
     pub fn int8_kernel(&self) -> Option<&'static str> {
         if self.amx {
             Some("amx")
         } else if self.vnni {
             Some("vnni")
+        } else if self.dotprod {
+            Some("sdot")
         } else {
             None
         }
@@ -169,7 +174,7 @@ pub fn isa_warning() -> Option<String> {
     let cap = std::env::var("PRL_ISA").ok()?;
     Isa::probe().capped(&cap).is_none().then(|| {
         format!(
-            "PRL_ISA={cap} is not one of generic, avx2, avx512, vnni, native: the CPU's own instruction sets are used"
+            "PRL_ISA={cap} is not one of generic, neon, avx2, avx512, vnni, native: the CPU's own instruction sets are used"
         )
     })
 }
@@ -202,6 +207,7 @@ mod tests {
         assert_eq!(arm.capped("generic").unwrap().f32_kernel(), F32Kernel::Portable);
         assert_eq!(all.int8_kernel(), Some("amx"));
         assert_eq!(v.int8_kernel(), Some("vnni"));
-        assert_eq!(arm.int8_kernel(), None);
+        assert_eq!(arm.int8_kernel(), Some("sdot"));
+        assert_eq!(arm.capped("generic").unwrap().int8_kernel(), None);
     }
 }

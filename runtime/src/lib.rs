@@ -45,8 +45,9 @@ pub use manifest::{
 };
 pub use nnef::nnef;
 pub use ops::{
-    accelerate, Accelerated, AttnMix, AttnScores, Binary, BroadcastBinary, ChannelMaxPool, ConstMatMul, ConvShape,
-    DepthwiseConv, DepthwiseXCorr, LayerNormCore, PackedConv, PackedQConv, QuantizeU8, RowSoftmax,
+    accelerate, own_operators, Accelerated, AttnMix, AttnScores, Binary, BroadcastBinary, ChannelMaxPool, ConstMatMul,
+    ConvShape, DepthwiseConv, DepthwiseConvHwc, DepthwiseXCorr, LayerNormCore, PackedConv, PackedQConv, QuantizeU8,
+    RowSoftmax,
 };
 pub use plan::{set_threads, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};

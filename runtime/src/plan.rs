@@ -283,7 +283,9 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             // Declutter first: constants reach the convolutions' weight and bias inputs (the
             // graph read from NNEF is not in the form the runtime's operators match).
             let mut model = model.into_decluttered()?;
-            crate::accelerate(&mut model)?;
+            if crate::ops::own_operators() {
+                crate::accelerate(&mut model)?;
+            }
             model.optimize()?; // codegen only: the model is decluttered already
             Ok(model)
         })

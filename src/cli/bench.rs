@@ -223,6 +223,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     println!("runtime kernels may use: {}", prl_runtime::isa().describe());
+    if !prl_runtime::own_operators() {
+        println!("operators: tract's alone (PRL_OPS=tract)");
+    }
     println!("{:<18} {:>10} {:>10}", "stage", "median ms", "p90 ms");
     for s in &report.stages {
         println!("{:<18} {:>10.2} {:>10.2}", s.stage, s.median_ms, s.p90_ms);

@@ -81,6 +81,9 @@ fn replay(plan: &Path, tensors: &Path, tolerance: f64, json: bool) -> anyhow::Re
         );
     } else {
         println!("runtime kernels may use: {}", prl_runtime::isa().describe());
+        if !prl_runtime::own_operators() {
+            println!("operators: tract's alone (PRL_OPS=tract)");
+        }
         if plan.manifest().quantization.is_some() {
             let ints = plan.integer_nodes();
             let mut kernels: Vec<String> = ints.iter().map(|n| kernel_name(n)).collect();

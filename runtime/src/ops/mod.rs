@@ -2,7 +2,7 @@
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
 //! ([`DepthwiseXCorr`]), convolutions ([`PackedConv`], stride 1 or 2, and [`DepthwiseConv`] for
 //! depthwise ones with constant weights, and [`PackedQConv`] for int8
-//! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some), max pooling
+//! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some, or aarch64's dot product), max pooling
 //! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
 //! norms ([`LayerNormCore`]), linear layers ([`ConstMatMul`]) and broadcast products and sums
 //! ([`BroadcastBinary`]), and int8 plans' quantisation of activations ([`QuantizeU8`]). Plans
@@ -14,6 +14,7 @@ mod binary;
 mod conv;
 mod conv_kernel;
 mod dwconv;
+mod dwconv_hwc;
 mod matmul;
 mod norm;
 mod pool;
@@ -28,6 +29,7 @@ pub use attention::{AttnMix, AttnScores, RowSoftmax};
 pub use binary::{Binary, BroadcastBinary};
 pub use conv::{ConvShape, PackedConv};
 pub use dwconv::DepthwiseConv;
+pub use dwconv_hwc::DepthwiseConvHwc;
 pub use matmul::ConstMatMul;
 pub use norm::LayerNormCore;
 pub use pool::ChannelMaxPool;
@@ -37,6 +39,14 @@ pub use xcorr::DepthwiseXCorr;
 
 use tract_nnef::internal::*;
 
+/// Whether plans are loaded with the runtime's own operators: yes unless the environment
+/// variable `PRL_OPS` is `tract` (tract's operators alone: what the runtime's own are measured
+/// against, on any machine, the camera included).
+pub fn own_operators() -> bool {
+    static OWN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *OWN.get_or_init(|| !std::env::var("PRL_OPS").is_ok_and(|v| v.trim().eq_ignore_ascii_case("tract")))
+}
+
 /// How many nodes [`accelerate`] replaced.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Accelerated {
@@ -44,7 +54,8 @@ pub struct Accelerated {
     pub correlations: usize,
     /// Convolutions made [`PackedConv`].
     pub convolutions: usize,
-    /// Depthwise convolutions with constant weights made [`DepthwiseConv`].
+    /// Depthwise convolutions with constant weights made [`DepthwiseConv`] (or
+    /// [`DepthwiseConvHwc`] on channels-last data).
     pub depthwise: usize,
     /// Max pools made [`ChannelMaxPool`].
     pub pools: usize,
@@ -73,6 +84,9 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
             done.convolutions += 1;
             (Box::new(op), tvec![node.inputs[0]])
         } else if let Some(op) = dwconv::depthwise(model, node)? {
+            done.depthwise += 1;
+            (Box::new(op), tvec![node.inputs[0]])
+        } else if let Some(op) = dwconv_hwc::depthwise_hwc(model, node)? {
             done.depthwise += 1;
             (Box::new(op), tvec![node.inputs[0]])
         } else if let Some(op) = qconv::packed_q(model, node)? {
@@ -174,8 +188,8 @@ pub(crate) fn amx_available() -> bool {
 pub(crate) fn kernel_name(op: &str, info: &str) -> String {
     let isa = crate::isa();
     match op {
-        "PackedConv" | "DepthwiseConv" | "DepthwiseXCorr" | "ConstMatMul" | "AttnScores" | "AttnMix" | "RowSoftmax"
-        | "QuantizeU8" => isa.f32_kernel().name().to_string(),
+        "PackedConv" | "DepthwiseConv" | "DepthwiseConvHwc" | "DepthwiseXCorr" | "ConstMatMul" | "AttnScores"
+        | "AttnMix" | "RowSoftmax" | "QuantizeU8" => isa.f32_kernel().name().to_string(),
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
         "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" => "portable (vectorised)".to_string(),
         _ => info

@@ -6,7 +6,9 @@
 //! int8 plan, backbone layer 2's product took 7 ms and its im2col 25 ms. Here the input is
 //! copied once into `[C/4, Hp, Wp, 4]` bytes (four channels side by side, padded with the input
 //! zero point), so the four channels of a tap are one 32-bit word and a tile of 16 positions is
-//! one 64-byte load. Put in only on CPUs with AVX-512 VNNI; elsewhere tract's path stays. Where
+//! one 64-byte load. Put in only on CPUs with AVX-512 VNNI or, on aarch64, the dot product
+//! (`sdot` on i8: the inputs go in shifted by 128, and 128·Σw is added back before the
+//! requantisation); elsewhere tract's path stays. Where
 //! the CPU also has AMX-INT8, the product runs on AMX tiles instead ([`super::qconv_amx`],
 //! 4x faster than VNNI on backbone layer 2); both requantise with the same vector code
 //! ([`super::qconv_kernel`]).
@@ -18,6 +20,8 @@ use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::qconv_amx::AmxWeights;
+#[cfg(target_arch = "aarch64")]
+use super::qconv_kernel::tiles_sdot;
 use super::qconv_kernel::{bytemuck_words, requantise, tiles_vnni};
 use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits, ConvShape};
 
@@ -38,6 +42,8 @@ pub struct PackedQConv {
     taps: Arc<Vec<usize>>,
     /// Per output channel: `bias − x0·Σw`, and the requantisation scale.
     offset: Arc<Vec<i32>>,
+    /// Per output channel: `Σw` (the SDOT path's sums lack `128·Σw`).
+    wsum: Arc<Vec<i32>>,
     scale: Arc<Vec<f32>>,
     x0: u8,
     y0: u8,
@@ -72,7 +78,11 @@ impl Op for PackedQConv {
 
     fn info(&self) -> TractResult<Vec<String>> {
         let s = &self.shape;
-        let isa = if self.amx.is_some() { "AMX" } else { "AVX-512 VNNI" };
+        let isa = match (&self.amx, words_path()) {
+            (Some(_), _) => "AMX",
+            (None, Some(WordsPath::Sdot)) => "aarch64 SDOT",
+            _ => "AVX-512 VNNI",
+        };
         Ok(vec![format!("{}x{} kernel, {} -> {} channels, u8 x i8 on {isa}, pad {:?}", s.kh, s.kw, s.ci, s.co, s.pad)])
     }
 
@@ -93,15 +103,18 @@ impl EvalOp for PackedQConv {
         let input = unsafe { input.as_slice_unchecked::<u8>() };
         let (oh, ow) = s.out();
         let plane = oh * ow;
+        let path = words_path().ok_or_else(|| format_err!("PackedQConv: no integer dot product on this CPU"))?;
+        // The SDOT path's sums lack 128·Σw (its inputs are x − 128).
+        let flip = if path == WordsPath::Sdot { 128 } else { 0 };
         let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| {
-            // SAFETY: the op is only made where the CPU has AVX-512 ([`packed_q`]).
-            unsafe { requantise(sums, self.offset[o], self.scale[o], self.y0, bytes) }
+            // SAFETY: on x86 the op is only made where the CPU has AVX-512 ([`packed_q`]).
+            unsafe { requantise(sums, self.offset[o] + flip * self.wsum[o], self.scale[o], self.y0, bytes) }
         };
         let mut t = output_tensor(&[n, s.co, oh, ow], |out: &mut [u8]| {
             for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
                 match &self.amx {
                     Some(amx) => amx.run(s, src, self.x0, (&self.offset, &self.scale, self.y0), dst),
-                    None => self.run_vnni(src, requant, dst),
+                    None => self.run_words(path, src, requant, dst),
                 }
             }
             Ok(())
@@ -113,8 +126,14 @@ impl EvalOp for PackedQConv {
 }
 
 impl PackedQConv {
-    /// One NCHW image on AVX-512 VNNI.
-    fn run_vnni(&self, src: &[u8], requant: impl Fn(usize, &[i32], &mut [u8]) + Sync, dst: &mut [u8]) {
+    /// One NCHW image on words of four channels: AVX-512 VNNI or aarch64 SDOT.
+    fn run_words(
+        &self,
+        path: WordsPath,
+        src: &[u8],
+        requant: impl Fn(usize, &[i32], &mut [u8]) + Sync,
+        dst: &mut [u8],
+    ) {
         let s = &self.shape;
         let (hp, wp) = s.padded();
         let (oh, ow) = s.out();
@@ -132,13 +151,24 @@ impl PackedQConv {
                 }
             }
         }
+        if path == WordsPath::Sdot {
+            // i8 inputs for the signed dot product: x − 128, the top bit of every byte flipped.
+            words.iter_mut().for_each(|w| *w ^= 0x8080_8080);
+        }
         let (words, taps) = (&words, &self.taps);
         par_chunks(dst, ROWS * plane, |b, out| {
             let mut sums = vec![0i32; positions.div_ceil(PX) * PX * ROWS];
             let weights = &self.weights[b * taps.len() * ROWS..(b + 1) * taps.len() * ROWS];
-            // SAFETY: the op is only made where the CPU has AVX-512 VNNI ([`packed_q`]);
-            // every tile of every tap lies in `words` (padded by `PX + wp` words).
-            unsafe { tiles_vnni(words, taps, weights, positions, &mut sums) };
+            match path {
+                // SAFETY: the path is one the CPU has ([`words_path`]); every tile of every tap
+                // lies in `words` (padded by `PX + wp` words).
+                WordsPath::Vnni => unsafe { tiles_vnni(words, taps, weights, positions, &mut sums) },
+                // SAFETY: as above.
+                #[cfg(target_arch = "aarch64")]
+                WordsPath::Sdot => unsafe { tiles_sdot(words, taps, weights, positions, &mut sums) },
+                #[cfg(not(target_arch = "aarch64"))]
+                WordsPath::Sdot => unreachable!("SDOT is aarch64's"),
+            }
             let mut row = vec![0i32; ow];
             for (r, out) in out.chunks_exact_mut(plane).enumerate() {
                 for (y, out) in out.chunks_exact_mut(ow).enumerate() {
@@ -169,9 +199,30 @@ impl TypedOp for PackedQConv {
     as_op!();
 }
 
-/// Whether the kernels may use AVX-512 VNNI ([`crate::isa`]).
-fn has_vnni() -> bool {
-    crate::isa().vnni
+/// The integer dot products on words of four bytes [`PackedQConv`] runs on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum WordsPath {
+    /// x86_64 AVX-512 VNNI (`vpdpbusd`: u8 x i8).
+    Vnni,
+    /// aarch64 dot product (`sdot`: i8 x i8, inputs shifted by 128).
+    Sdot,
+}
+
+/// The path the CPU has ([`crate::isa`]: VNNI, else the aarch64 dot product), if any.
+fn words_path() -> Option<WordsPath> {
+    let isa = crate::isa();
+    if isa.vnni {
+        Some(WordsPath::Vnni)
+    } else if isa.dotprod {
+        Some(WordsPath::Sdot)
+    } else {
+        None
+    }
+}
+
+/// Whether a [`PackedQConv`] can run here.
+fn has_words_path() -> bool {
+    words_path().is_some()
 }
 
 /// A scalar (or a vector of `n`) constant as f32 / i32 values.
@@ -189,10 +240,10 @@ fn konst_values<T: Datum + Copy>(fact: &TypedFact, n: usize) -> TractResult<Opti
 
 /// The [`PackedQConv`] for `node` if it is a stride-1 quantised convolution with u8 input and
 /// output, constant i8 weights of zero point 0, constant quantisation parameters, and the CPU
-/// has AVX-512 VNNI.
+/// has AVX-512 VNNI or the aarch64 dot product.
 pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedQConv>> {
     let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
-    if !has_vnni() {
+    if !has_words_path() {
         return Ok(None);
     }
     let facts = model.node_input_facts(node.id)?;
@@ -266,6 +317,7 @@ impl PackedQConv {
         let blocks = co.div_ceil(ROWS);
         let mut words = vec![[0i8; 4]; blocks * groups * ROWS];
         let mut offset = vec![0i32; blocks * ROWS];
+        let mut wsum = vec![0i32; blocks * ROWS];
         let mut scale = vec![0f32; blocks * ROWS];
         for o in 0..co {
             let mut sum = 0i32;
@@ -280,6 +332,7 @@ impl PackedQConv {
                 }
             }
             offset[o] = bias[o] - q.x0 as i32 * sum;
+            wsum[o] = sum;
             scale[o] = q.x_scale * q.k_scale[o] / q.y_scale;
         }
         let weights = words.iter().map(|b| i32::from_ne_bytes(b.map(|v| v as u8))).collect();
@@ -289,6 +342,7 @@ impl PackedQConv {
             shape,
             weights: Arc::new(weights),
             offset: Arc::new(offset),
+            wsum: Arc::new(wsum),
             scale: Arc::new(scale),
             x0: q.x0,
             y0: q.y0,
@@ -335,10 +389,10 @@ mod tests {
 
     /// Both kernels (AMX where the CPU has it, VNNI) against [`direct`] on two images of `s`.
     fn check(s: ConvShape) {
-        if !has_vnni() {
-            // The op is only made where VNNI may be used: say so, loudly.
+        if !has_words_path() {
+            // The op is only made where VNNI or SDOT may be used: say so, loudly.
             eprintln!(
-                "NOTE: no AVX-512 VNNI here (or PRL_ISA caps it): PackedQConv's kernels are NOT tested on this machine"
+                "NOTE: no AVX-512 VNNI or aarch64 dot product here (or PRL_ISA caps it): PackedQConv's kernels are NOT tested on this machine"
             );
             return;
         }
@@ -356,7 +410,8 @@ mod tests {
         let amx = PackedQConv::new(s.clone(), &kernel, &bias, q, u8::datum_type()).unwrap();
         let vnni = PackedQConv { amx: None, ..amx.clone() };
         let x = tract_ndarray::Array4::from_shape_vec((2, s.ci, s.h, s.w), input).unwrap().into_tensor();
-        for (op, isa) in [(&amx, if amx.amx.is_some() { "AMX" } else { "VNNI" }), (&vnni, "VNNI")] {
+        let words = if words_path() == Some(WordsPath::Sdot) { "SDOT" } else { "VNNI" };
+        for (op, isa) in [(&amx, if amx.amx.is_some() { "AMX" } else { words }), (&vnni, words)] {
             let out = op.eval(&EvalContext::out_of_plan(), tvec![x.clone().into_tvalue()]).unwrap();
             let out = out[0].try_as_plain_ram().unwrap();
             let got = out.as_slice::<u8>().unwrap();

@@ -1,8 +1,9 @@
 //! The inner loops of [`super::PackedQConv`]: the AVX-512 VNNI tiles (8 output channels x 32
-//! positions, `vpdpbusd` on words of four u8 inputs and four i8 weights) and the requantisation
-//! both its kernels share (16 lanes, bit for bit the scalar formula).
+//! positions, `vpdpbusd` on words of four u8 inputs and four i8 weights), the aarch64 SDOT tiles
+//! (8 output channels x 8 positions, `sdot` on words of four i8 inputs and four i8 weights) and
+//! the requantisation they share (16 lanes on AVX-512, bit for bit the scalar formula).
 
-#[cfg(target_arch = "x86_64")]
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
 use super::qconv::{PX, ROWS};
 
 /// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`.
@@ -38,9 +39,16 @@ pub(super) fn requant16(v: std::arch::x86_64::__m512i, offset: i32, scale: f32, 
     _mm512_cvtepi32_epi8(_mm512_cvttps_epi32(f))
 }
 
+/// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`, the portable form
+/// (vectorised by the compiler; `frintn` on NEON).
+///
+/// # Safety
+/// None needed; `unsafe` for the same signature as the AVX-512 form.
 #[cfg(not(target_arch = "x86_64"))]
-pub(super) unsafe fn requantise(_: &[i32], _: i32, _: f32, _: u8, _: &mut [u8]) {
-    unreachable!("PackedQConv is only made on x86_64 with AVX-512 VNNI")
+pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
+    for (o, &s) in out.iter_mut().zip(sums) {
+        *o = (((s + offset) as f32 * scale).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8;
+    }
 }
 
 /// The bytes of a word buffer.
@@ -82,4 +90,62 @@ pub(super) unsafe fn tiles_vnni(words: &[u32], taps: &[usize], weights: &[i32], 
 #[cfg(not(target_arch = "x86_64"))]
 pub(super) unsafe fn tiles_vnni(_: &[u32], _: &[usize], _: &[i32], _: usize, _: &mut [i32]) {
     unreachable!("PackedQConv is only made on x86_64 with AVX-512 VNNI")
+}
+
+/// `sums[tile][r][q]` as [`tiles_vnni`] gives them, on aarch64's signed dot product: `words` hold
+/// the inputs with their top bit flipped (`x − 128` as i8; SDOT multiplies i8 by i8, and the
+/// A78AE has no mixed-sign USDOT), so each sum is `Σ w·x − 128·Σ w` (the caller adds the
+/// second term back). A tile's 32 positions go 8 at a time: 16 accumulators (8 channels x 2
+/// registers of 4 positions), two input and two weight loads per tap, each weight word taken by
+/// lane (`SDOT v.4s, v.16b, v.4b[l]`).
+#[cfg(target_arch = "aarch64")]
+#[target_feature(enable = "neon,dotprod")]
+pub(super) unsafe fn tiles_sdot(words: &[u32], taps: &[usize], weights: &[i32], positions: usize, sums: &mut [i32]) {
+    use std::arch::aarch64::*;
+    use std::arch::asm;
+    /// `acc += dot4(x words, weight word l of w)`, lane by lane.
+    macro_rules! sdot {
+        ($acc:expr, $x:expr, $w:expr, $l:literal) => {
+            asm!("sdot {a:v}.4s, {x:v}.16b, {w:v}.4b[{l}]", a = inout(vreg) $acc, x = in(vreg) $x, w = in(vreg) $w,
+                 l = const $l, options(pure, nomem, nostack))
+        };
+    }
+    for (tile, sums) in sums.chunks_exact_mut(PX * ROWS).enumerate().take(positions.div_ceil(PX)) {
+        for sub in 0..PX / 8 {
+            // SAFETY: the caller guarantees every tile's `PX` words from each tap are in
+            // `words`; `weights` holds `ROWS` words per tap; `sums` holds a whole tile.
+            unsafe {
+                let base = words.as_ptr().add(tile * PX + sub * 8);
+                let mut a = [vdupq_n_s32(0); 2 * ROWS];
+                let mut w = weights.as_ptr();
+                for &t in taps {
+                    let x0 = vld1q_s8(base.add(t).cast());
+                    let x1 = vld1q_s8(base.add(t + 4).cast());
+                    let (w0, w1) = (vld1q_s8(w.cast()), vld1q_s8(w.add(4).cast()));
+                    sdot!(a[0], x0, w0, 0);
+                    sdot!(a[1], x1, w0, 0);
+                    sdot!(a[2], x0, w0, 1);
+                    sdot!(a[3], x1, w0, 1);
+                    sdot!(a[4], x0, w0, 2);
+                    sdot!(a[5], x1, w0, 2);
+                    sdot!(a[6], x0, w0, 3);
+                    sdot!(a[7], x1, w0, 3);
+                    sdot!(a[8], x0, w1, 0);
+                    sdot!(a[9], x1, w1, 0);
+                    sdot!(a[10], x0, w1, 1);
+                    sdot!(a[11], x1, w1, 1);
+                    sdot!(a[12], x0, w1, 2);
+                    sdot!(a[13], x1, w1, 2);
+                    sdot!(a[14], x0, w1, 3);
+                    sdot!(a[15], x1, w1, 3);
+                    w = w.add(ROWS);
+                }
+                let s = sums.as_mut_ptr();
+                for r in 0..ROWS {
+                    vst1q_s32(s.add(r * PX + sub * 8), a[2 * r]);
+                    vst1q_s32(s.add(r * PX + sub * 8 + 4), a[2 * r + 1]);
+                }
+            }
+        }
+    }
 }

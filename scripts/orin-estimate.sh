@@ -1,0 +1,85 @@
+#!/usr/bin/env bash
+# An estimate of the tracking step's time on the Jetson Orin NX's CPU (8 Cortex-A78AE cores,
+# 2.0 GHz), made on an x86 machine, for NanoTrack v2 and PRL-Track, fp32 and int8, with the
+# runtime's operators and with tract's alone (PRL_OPS=tract):
+#
+#   bash scripts/orin-estimate.sh          # about an hour on 2 cores (PRL-Track under qemu)
+#   NANOTRACK_ONLY=1 bash scripts/orin-estimate.sh   # a few minutes
+#
+# 1. Instructions per step: the aarch64 `prl bench` (scripts/aarch64.sh build) runs under
+#    `qemu-aarch64 -cpu cortex-a76` with an instruction-counting plugin
+#    (scripts/qemu-insn-count.c), once with 1 and once with 3 timed runs, on one thread; the
+#    difference over 2 is one tracking step plus one template run (bench times both per run),
+#    so the estimate is an upper bound on the step.
+# 2. Cycles: the hot blocks through llvm-mca -mcpu=neoverse-n1 (a Cortex-A76 derivative and the
+#    closest model LLVM has to the A78: LLVM's cortex-a78 uses the A57 model), 4-wide dispatch
+#    (scripts/orin_estimate.py: L1 hits and predicted branches assumed).
+# 3. Threads: the serial fraction s from this x86 machine's 1- and 2-thread search times
+#    (T2 = T1·(s + (1-s)/2)), applied to 8 cores: T8 = T1·(s + (1-s)/8) (Amdahl; on the board
+#    memory bandwidth and the cluster's shared L3 may do worse).
+#
+# Needs what scripts/aarch64.sh installs, plus Debian's llvm-19 (llvm-mca) and gcc; installs
+# them when missing. Writes target/orin-estimate/ and prints one table.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+SHARED=${PRL_SHARED_DIR:-$ROOT/../shared}
+W=$ROOT/target/orin-estimate
+ARM=$ROOT/target/aarch64-unknown-linux-gnu/release/prl
+HOST=$ROOT/target/release/prl
+SEQ=$SHARED/data/uav123_10fps/building4
+
+bash scripts/aarch64.sh build
+if ! command -v llvm-mca-19 >/dev/null; then
+    sudo=()
+    [ "$(id -u)" = 0 ] || sudo=(sudo)
+    "${sudo[@]}" apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive "${sudo[@]}" apt-get install -y -qq llvm-19 >/dev/null
+fi
+cargo build --release --bin prl
+mkdir -p "$W"
+gcc -shared -fPIC -O2 -o "$W/insn-count.so" scripts/qemu-insn-count.c
+
+plans=(nanotrack-fp32 nanotrack-int8)
+if [ ! -d "$W/nanotrack-int8" ]; then
+    "$HOST" import nanotrack --out "$W/nanotrack-model"
+    "$HOST" compile --model "$W/nanotrack-model" --out "$W/nanotrack-fp32"
+    "$HOST" quantize --plan "$W/nanotrack-fp32" --calib "$SEQ" --frames-per-seq 16 --method minmax \
+        --budget 4 --min-macs 1000000 --min-out-channels 16 --out "$W/nanotrack-int8" >/dev/null
+fi
+if [ -z "${NANOTRACK_ONLY:-}" ]; then
+    plans+=(prl-fp32 prl-int8)
+    if [ ! -d "$W/prl-int8" ]; then
+        "$HOST" compile --checkpoint "$SHARED/fixtures/prl-golden-v1/checkpoint.pth" --out "$W/prl-fp32"
+        "$HOST" quantize --plan "$W/prl-fp32" --calib "$SEQ" --frames-per-seq 16 --out "$W/prl-int8" >/dev/null
+    fi
+fi
+
+count() { # plan ops runs
+    env PRL_OPS="$2" qemu-aarch64 -L /usr/aarch64-linux-gnu -cpu cortex-a76 -plugin "$W/insn-count.so" \
+        -d plugin -D "$W/$1-$2-$3.txt" "$ARM" bench --plan "$W/$1" --sequence "$SEQ" --runs "$3" --top 0 \
+        --threads 1 >/dev/null
+}
+
+printf '%-16s %-8s %12s %8s %10s %6s %10s %8s\n' plan ops "M insn/step" "IPC" "ms 1 core" "s" "ms 8 core" "FPS"
+for p in "${plans[@]}"; do
+    # The serial fraction, from this machine (the runtime's operators).
+    "$HOST" bench --plan "$W/$p" --sequence "$SEQ" --runs 20 --top 0 --threads 1 --json "$W/$p-t1.json" >/dev/null
+    "$HOST" bench --plan "$W/$p" --sequence "$SEQ" --runs 20 --top 0 --threads 2 --json "$W/$p-t2.json" >/dev/null
+    s=$(python3 -c "
+import json
+t = [next(x['median_ms'] for x in json.load(open('$W/$p-t%d.json' % n))['stages'] if x['stage'] == 'search network') for n in (1, 2)]
+print(min(1.0, max(0.0, 2 * t[1] / t[0] - 1)))")
+    for ops in runtime tract; do
+        # Two runs side by side (one emulated thread each).
+        count "$p" "$ops" 1 &
+        count "$p" "$ops" 3
+        wait
+        python3 scripts/orin_estimate.py "$ARM" "$W/$p-$ops-1.txt" "$W/$p-$ops-3.txt" 2 --json "$W/$p-$ops.json" >/dev/null
+        python3 -c "
+import json
+r = json.load(open('$W/$p-$ops.json')); s = $s
+ms1 = r['cycles_per_step'] / 2.0e6; ms8 = ms1 * (s + (1 - s) / 8)
+print('%-16s %-8s %12.1f %8.2f %10.1f %6.2f %10.1f %8.1f' % ('$p', '$ops', r['instructions_per_step'] / 1e6, r['ipc_modelled'], ms1, s, ms8, 1e3 / ms8))"
+    done
+done
