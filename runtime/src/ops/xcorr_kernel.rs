@@ -76,48 +76,54 @@ pub(crate) fn correlate_channel(
 #[cfg(target_arch = "aarch64")]
 #[target_feature(enable = "neon")]
 unsafe fn strips_neon(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
-    const ROWS: usize = 4;
+    const R: usize = 4;
+    walk(g, LANES, R, |rows, y, x0, cols| {
+        let a = (g, padded, kernel, bias, &mut *out, y, x0, cols);
+        // SAFETY: NEON is enabled here; the loads stay in `padded` (rows padded to whole
+        // 16-column blocks), the stores in `out` (`cols` values a row).
+        unsafe {
+            match (rows, cols.div_ceil(4)) {
+                (R, 1) => rows_neon::<R, 1>(a),
+                (R, 2) => rows_neon::<R, 2>(a),
+                (R, 3) => rows_neon::<R, 3>(a),
+                (R, _) => rows_neon::<R, 4>(a),
+                (_, 1) => rows_neon::<1, 1>(a),
+                (_, 2) => rows_neon::<1, 2>(a),
+                (_, 3) => rows_neon::<1, 3>(a),
+                _ => rows_neon::<1, 4>(a),
+            }
+        }
+    });
+}
+
+/// The strips of an output: columns `max_cols` at a time, and in each, rows `group` at a time
+/// (single rows for the last few): `f(rows, y, x0, cols)` for each block.
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+#[inline(always)]
+fn walk(g: Geometry, max_cols: usize, group: usize, mut f: impl FnMut(usize, usize, usize, usize)) {
     let (ow, oh) = (g.out_w(), g.out_h());
     let mut x0 = 0;
     while x0 < ow {
-        let cols = (ow - x0).min(LANES);
+        let cols = (ow - x0).min(max_cols);
         let mut y = 0;
         while y < oh {
-            let rows = if oh - y >= ROWS { ROWS } else { 1 };
-            // SAFETY: NEON is enabled here; the loads stay in `padded` (rows padded to whole
-            // 16-column blocks), the stores in `out` (`cols` values a row).
-            unsafe {
-                match (rows, cols.div_ceil(4)) {
-                    (ROWS, 1) => rows_neon::<ROWS, 1>(g, padded, kernel, bias, out, y, x0, cols),
-                    (ROWS, 2) => rows_neon::<ROWS, 2>(g, padded, kernel, bias, out, y, x0, cols),
-                    (ROWS, 3) => rows_neon::<ROWS, 3>(g, padded, kernel, bias, out, y, x0, cols),
-                    (ROWS, _) => rows_neon::<ROWS, 4>(g, padded, kernel, bias, out, y, x0, cols),
-                    (_, 1) => rows_neon::<1, 1>(g, padded, kernel, bias, out, y, x0, cols),
-                    (_, 2) => rows_neon::<1, 2>(g, padded, kernel, bias, out, y, x0, cols),
-                    (_, 3) => rows_neon::<1, 3>(g, padded, kernel, bias, out, y, x0, cols),
-                    _ => rows_neon::<1, 4>(g, padded, kernel, bias, out, y, x0, cols),
-                }
-            }
+            let rows = if oh - y >= group { group } else { 1 };
+            f(rows, y, x0, cols);
             y += rows;
         }
         x0 += cols;
     }
 }
 
+/// The arguments of a row-block kernel: the geometry, the padded input, the kernel, the bias,
+/// the output, and the block's first row, first column and column count.
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+type Block<'a> = (Geometry, &'a [f32], &'a [f32], f32, &'a mut [f32], usize, usize, usize);
+
 /// Output rows `y..y+R`, columns `x0..x0+cols` (`B` registers of 4), as [`rows_avx512`].
 #[cfg(target_arch = "aarch64")]
 #[target_feature(enable = "neon")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn rows_neon<const R: usize, const B: usize>(
-    g: Geometry,
-    padded: &[f32],
-    kernel: &[f32],
-    bias: f32,
-    out: &mut [f32],
-    y: usize,
-    x0: usize,
-    cols: usize,
-) {
+unsafe fn rows_neon<const R: usize, const B: usize>((g, padded, kernel, bias, out, y, x0, cols): Block) {
     use std::arch::aarch64::*;
     let (wp, ow) = (g.padded_w(), g.out_w());
     assert!((y + R + g.kh - 1) * wp <= padded.len() && x0 + 4 * B + g.kw - 1 <= wp && kernel.len() == g.kh * g.kw);
@@ -162,47 +168,29 @@ unsafe fn strips_avx2_fma(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn strips_avx512(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
-    const ROWS: usize = 4;
-    let (ow, oh) = (g.out_w(), g.out_h());
-    let mut x0 = 0;
-    while x0 < ow {
-        let cols = (ow - x0).min(3 * LANES);
-        let mut y = 0;
-        while y < oh {
-            let rows = if oh - y >= ROWS { ROWS } else { 1 };
-            // SAFETY: the feature is enabled here; the loads stay in `padded` (rows padded to
-            // whole blocks), the stores in `out` (masked to `cols`).
-            unsafe {
-                match (rows, cols.div_ceil(LANES)) {
-                    (ROWS, 1) => rows_avx512::<ROWS, 1>(g, padded, kernel, bias, out, y, x0, cols),
-                    (ROWS, 2) => rows_avx512::<ROWS, 2>(g, padded, kernel, bias, out, y, x0, cols),
-                    (ROWS, _) => rows_avx512::<ROWS, 3>(g, padded, kernel, bias, out, y, x0, cols),
-                    (_, 1) => rows_avx512::<1, 1>(g, padded, kernel, bias, out, y, x0, cols),
-                    (_, 2) => rows_avx512::<1, 2>(g, padded, kernel, bias, out, y, x0, cols),
-                    _ => rows_avx512::<1, 3>(g, padded, kernel, bias, out, y, x0, cols),
-                }
+    const R: usize = 4;
+    walk(g, 3 * LANES, R, |rows, y, x0, cols| {
+        let a = (g, padded, kernel, bias, &mut *out, y, x0, cols);
+        // SAFETY: the feature is enabled here; the loads stay in `padded` (rows padded to
+        // whole blocks), the stores in `out` (masked to `cols`).
+        unsafe {
+            match (rows, cols.div_ceil(LANES)) {
+                (R, 1) => rows_avx512::<R, 1>(a),
+                (R, 2) => rows_avx512::<R, 2>(a),
+                (R, _) => rows_avx512::<R, 3>(a),
+                (_, 1) => rows_avx512::<1, 1>(a),
+                (_, 2) => rows_avx512::<1, 2>(a),
+                _ => rows_avx512::<1, 3>(a),
             }
-            y += rows;
         }
-        x0 += cols;
-    }
+    });
 }
 
 /// Output rows `y..y+R`, columns `x0..x0+cols` (`B` registers): input row `y + r` adds to
 /// output row `y + q` with kernel row `r − q`, so the sums keep their (row, column) order.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn rows_avx512<const R: usize, const B: usize>(
-    g: Geometry,
-    padded: &[f32],
-    kernel: &[f32],
-    bias: f32,
-    out: &mut [f32],
-    y: usize,
-    x0: usize,
-    cols: usize,
-) {
+unsafe fn rows_avx512<const R: usize, const B: usize>((g, padded, kernel, bias, out, y, x0, cols): Block) {
     use std::arch::x86_64::*;
     let (wp, ow) = (g.padded_w(), g.out_w());
     assert!((y + R + g.kh - 1) * wp <= padded.len() && x0 + B * LANES + g.kw - 1 <= wp && kernel.len() == g.kh * g.kw);
