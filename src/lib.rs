@@ -10,6 +10,7 @@ mod metrics;
 pub mod ope;
 mod sequence;
 pub mod tracking;
+pub mod video;
 
 pub use calibration::{calibration_crops, CalibrationSpec, POSITION_JITTER, SCALE_JITTER};
 pub use dataset::{detect, Dataset, Format, Video, UAV123_ATTRIBUTES};

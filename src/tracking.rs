@@ -73,6 +73,9 @@ pub enum TrackError {
     /// The caller's per-frame hook failed (writing a visualisation, say).
     #[error("{0}")]
     Hook(String),
+    /// A video source failed.
+    #[error(transparent)]
+    Video(#[from] crate::video::VideoError),
 }
 
 /// Frames of a sequence, by index.
@@ -132,20 +135,42 @@ pub fn track(
     init: BBox,
     mut on_frame: impl FnMut(usize, &Frame, &BBox) -> Result<(), String>,
 ) -> Result<TrackRun, TrackError> {
-    let start = Instant::now();
     let n = frames.len();
+    let mut i = 0;
+    let next = || {
+        if i == n {
+            return Ok(None);
+        }
+        let f = frames.frame(i)?;
+        i += 1;
+        Ok(Some((f, frames.label(i - 1))))
+    };
+    track_stream(tracker, next, init, n, |i, f, b, _| on_frame(i, f, b))
+}
+
+/// Track through frames that come one after another (a video, a camera, a stream: the length
+/// need not be known): `next()` gives each with its label for errors, `None` at the end.
+/// `on_frame(i, frame, box, score)` sees every frame as it goes.
+pub fn track_stream(
+    tracker: &mut Tracker,
+    mut next: impl FnMut() -> Result<Option<(Frame, String)>, TrackError>,
+    init: BBox,
+    expected: usize,
+    mut on_frame: impl FnMut(usize, &Frame, &BBox, f64) -> Result<(), String>,
+) -> Result<TrackRun, TrackError> {
+    let start = Instant::now();
     let mut run = TrackRun {
-        boxes: Vec::with_capacity(n),
-        scores: Vec::with_capacity(n),
-        timings: Vec::with_capacity(n),
+        boxes: Vec::with_capacity(expected),
+        scores: Vec::with_capacity(expected),
+        timings: Vec::with_capacity(expected),
         total: Duration::ZERO,
     };
     let mut size = (0, 0);
-    for i in 0..n {
+    for i in 0.. {
         let t = Instant::now();
-        let f = frames.frame(i)?;
+        let Some((f, label)) = next()? else { break };
         let decode = t.elapsed();
-        let err = |source| TrackError::Tracker { label: frames.label(i), source };
+        let err = |source| TrackError::Tracker { label: label.clone(), source };
         if i == 0 {
             size = (f.width(), f.height());
             tracker.init(&f, init).map_err(err)?;
@@ -154,7 +179,7 @@ pub fn track(
         } else {
             if (f.width(), f.height()) != size {
                 let (got_w, got_h) = (f.width(), f.height());
-                return Err(TrackError::Size { label: frames.label(i), got_w, got_h, w: size.0, h: size.1 });
+                return Err(TrackError::Size { label, got_w, got_h, w: size.0, h: size.1 });
             }
             let p = tracker.track(&f).map_err(err)?;
             run.boxes.push(p.bbox);
@@ -162,7 +187,8 @@ pub fn track(
         }
         let s = tracker.last_timings();
         run.timings.push(FrameTiming { decode, crop: s.crop, network: s.network, post: s.post });
-        on_frame(i, &f, run.boxes.last().expect("pushed")).map_err(TrackError::Hook)?;
+        let (b, score) = (run.boxes.last().expect("pushed"), *run.scores.last().expect("pushed"));
+        on_frame(i, &f, b, score).map_err(TrackError::Hook)?;
     }
     run.total = start.elapsed();
     Ok(run)

@@ -40,6 +40,15 @@ impl Frame {
         Ok(Frame { width, height, bgr })
     }
 
+    /// A frame that takes over a BGR buffer of `width * height * 3` bytes (no copy: decoded video
+    /// frames).
+    pub fn from_bgr(width: usize, height: usize, bgr: Vec<u8>) -> Result<Self> {
+        if width == 0 || height == 0 || width.checked_mul(height).and_then(|n| n.checked_mul(3)) != Some(bgr.len()) {
+            return Err(Error::Input(format!("a {width}x{height} frame from {} bytes", bgr.len())));
+        }
+        Ok(Frame { width, height, bgr })
+    }
+
     /// A frame from an RGB image of the `image` crate.
     pub fn from_rgb_image(img: &image::RgbImage) -> Self {
         let bgr = img.as_raw().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();

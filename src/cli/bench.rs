@@ -238,7 +238,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         return finish(&a, &report);
     }
     println!("\nslowest operators of the search graph (tract profile, {:.1} ms in all):", total * 1e3);
-    println!("{:>9} {:>6} {:>8}  {:<16} {:<24} {}", "ms", "share", "GFLOP/s", "op", "kernel", "node");
+    println!("{:>9} {:>6} {:>8}  {:<16} {:<24} node", "ms", "share", "GFLOP/s", "op", "kernel");
     for o in &report.top_ops {
         let gflops = if o.gflops > 0.0 { format!("{:.1}", o.gflops) } else { "-".into() };
         let kernel = if o.kernel.is_empty() { "-" } else { &o.kernel };

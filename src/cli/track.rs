@@ -17,15 +17,35 @@ pub struct TrackArgs {
     #[arg(long, default_value = "models/prl-track/plan")]
     plan: PathBuf,
     /// OTB/UAV123-style sequence folder (`img/`, `groundtruth_rect.txt`); init from its first box.
-    #[arg(long, value_name = "DIR", required_unless_present = "frames", conflicts_with = "frames")]
+    #[arg(long, value_name = "DIR", required_unless_present_any = ["frames", "video"], conflicts_with_all = ["frames", "video"])]
     sequence: Option<PathBuf>,
     /// A bare folder of frames (needs --init).
-    #[arg(long, value_name = "DIR", requires = "init")]
+    #[arg(long, value_name = "DIR", requires = "init", conflicts_with = "video")]
     frames: Option<PathBuf>,
+    /// A video file, a camera device (`/dev/video0`) or a stream URL (`rtsp://...`), decoded by
+    /// FFmpeg (needs --init; install: `sudo apt-get install ffmpeg`).
+    #[arg(long, value_name = "SRC", requires = "init")]
+    video: Option<String>,
+    /// With --video: always track the newest frame, dropping the ones that came while the tracker
+    /// was busy (cameras, streams); the default tracks every frame in order (files).
+    #[arg(long, requires = "video")]
+    live: bool,
+    /// With --video: the frame number (from 0) that --init is on; earlier frames are skipped.
+    #[arg(long, value_name = "N", default_value_t = 0, requires = "video")]
+    init_frame: usize,
+    /// With --video: write the video with the boxes drawn to FILE (through FFmpeg; the codec is
+    /// its default for the extension: `.mp4`, `.mkv`, `.avi` ...).
+    #[arg(long, value_name = "FILE", requires = "video")]
+    vis_video: Option<PathBuf>,
+    /// With --video: write one JSON object per frame on standard output (frame number, time,
+    /// box, score), and everything else on standard error.
+    #[arg(long, requires = "video")]
+    jsonl: bool,
     /// Initial box `x,y,w,h` in the first frame (0-based pixels).
     #[arg(long, value_name = "X,Y,W,H", value_parser = parse_init, allow_hyphen_values = true)]
     init: Option<[f64; 4]>,
-    /// Write one `x,y,w,h` line per frame here (pysot format; first line the init box).
+    /// Write one `x,y,w,h` line per frame here (pysot format; first line the init box); with
+    /// --live, `frame,x,y,w,h` lines (the frame number first: frames were dropped).
     #[arg(long, value_name = "FILE")]
     results: Option<PathBuf>,
     /// Write each frame with its box drawn (ground truth too, when known) into this folder.
@@ -116,6 +136,14 @@ pub fn track_with_progress(
     Ok(run?)
 }
 
+/// A copy of the frame with `pred` drawn (green).
+fn drawn(f: &Frame, pred: &BBox) -> Frame {
+    let rgb: Vec<u8> = f.bgr().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
+    let mut img = image::RgbImage::from_raw(f.width() as u32, f.height() as u32, rgb).expect("frame size");
+    draw_rect(&mut img, [pred.x, pred.y, pred.w, pred.h], [40, 255, 40]);
+    Frame::from_rgb_image(&img)
+}
+
 /// Draw `pred` (green) and `gt` (red) on a copy of the frame and save it as JPEG.
 pub fn save_vis(dir: &Path, i: usize, f: &Frame, pred: &BBox, gt: Option<[f64; 4]>) -> anyhow::Result<()> {
     let rgb: Vec<u8> = f.bgr().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
@@ -151,6 +179,9 @@ fn draw_rect(img: &mut image::RgbImage, b: [f64; 4], color: [u8; 3]) {
 
 pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     set_threads(a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())));
+    if let (Some(src), Some(b)) = (&a.video, a.init) {
+        return run_video(&a, src, BBox { x: b[0], y: b[1], w: b[2], h: b[3] });
+    }
     let (mut frames, gt, init) = match (&a.sequence, &a.frames, a.init) {
         (Some(dir), _, init) => {
             let seq = Sequence::open(dir)?;
@@ -198,5 +229,98 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
         write_atomically(path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     }
     summary.print();
+    Ok(())
+}
+
+/// `prl track --video SRC`: decode with FFmpeg and track every frame (or the newest, `--live`).
+fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
+    use prl_track::video::{Pacing, VideoSource};
+    use std::cell::RefCell;
+    // With --jsonl, standard output carries the per-frame objects only.
+    let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
+    // The plan first (a bad plan fails before a camera starts), then the source.
+    let t = Instant::now();
+    let plan = Plan::load(&a.plan)?;
+    let m = plan.manifest();
+    say(format!(
+        "plan: {} ({}, {}), loaded in {} ms",
+        a.plan.display(),
+        m.precision,
+        m.weights.note,
+        t.elapsed().as_millis()
+    ));
+    let config = plan.manifest().tracker.clone();
+    let mut tracker = Tracker::new(plan, config);
+    let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every })?;
+    let (w, h) = video.size();
+    say(format!("video: {src}, {w}x{h}, {}", if a.live { "live (newest frame)" } else { "every frame" }));
+    if let Some(dir) = &a.vis {
+        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    }
+    let mut writer = match &a.vis_video {
+        Some(p) => Some(prl_track::video::VideoWriter::create(p, w, h, if a.live { 10.0 } else { 25.0 })?),
+        None => None,
+    };
+    // Frame number and time of every frame tracked.
+    let stamps: RefCell<Vec<(usize, f64)>> = RefCell::new(vec![]);
+    let limit = a.max_frames.unwrap_or(usize::MAX).max(1);
+    let next = || loop {
+        if stamps.borrow().len() >= limit {
+            return Ok(None);
+        }
+        let Some(vf) = video.next_frame()? else { return Ok(None) };
+        if vf.index < a.init_frame {
+            continue;
+        }
+        stamps.borrow_mut().push((vf.index, vf.time.as_secs_f64()));
+        return Ok(Some((vf.frame, format!("{src} frame {}", vf.index))));
+    };
+    let run = tracking::track_stream(&mut tracker, next, init, 0, |i, f, b, score| {
+        let (index, time) = stamps.borrow()[i];
+        if a.jsonl {
+            let o = serde_json::json!({ "frame": index, "time_s": time, "box": [b.x, b.y, b.w, b.h], "score": score });
+            println!("{o}");
+        }
+        if let Some(wr) = writer.as_mut() {
+            wr.write(drawn(f, b).bgr()).map_err(|e| e.to_string())?;
+        }
+        match &a.vis {
+            Some(dir) => save_vis(dir, index, f, b, None).map_err(|e| format!("{e:#}")),
+            None => Ok(()),
+        }
+    })?;
+    if let Some(wr) = writer {
+        wr.finish()?;
+        say(format!("video with boxes: {}", a.vis_video.as_ref().expect("set with the writer").display()));
+    }
+    anyhow::ensure!(!run.boxes.is_empty(), "{src}: no frame at or after frame {} to start on", a.init_frame);
+    let stamps = stamps.into_inner();
+    if let Some(path) = &a.results {
+        // Every frame: pysot's one line a frame. Live: the frame number first, frames were dropped.
+        let text: String = if a.live {
+            run.xywh()
+                .iter()
+                .zip(&stamps)
+                .map(|(b, (n, _))| format!("{n},{},{},{},{}\n", b[0], b[1], b[2], b[3]))
+                .collect()
+        } else {
+            run.results_text()
+        };
+        write_atomically(path, text.as_bytes())?;
+        say(format!("results: {}", path.display()));
+    }
+    let summary = Summary::of(&run, None);
+    if let Some(path) = &a.json {
+        write_atomically(path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    }
+    say(format!(
+        "frames: {} tracked, {} dropped   FPS: {:.1}   ms per frame (median): decode {:.1}, crop {:.1}, network {:.1}",
+        summary.frames,
+        video.dropped(),
+        summary.fps,
+        summary.decode_ms,
+        summary.crop_ms,
+        summary.network_ms
+    ));
     Ok(())
 }

@@ -71,7 +71,8 @@ pub fn run(a: VerifyArgs) -> anyhow::Result<()> {
 fn replay(plan: &Path, tensors: &Path, tolerance: f64, json: bool) -> anyhow::Result<()> {
     let plan = prl_runtime::Plan::load(plan)?;
     let matches = prl_runtime::replay(tensors, &plan)?;
-    let bad: Vec<&str> = matches.iter().filter(|m| !(m.rel <= tolerance)).map(|m| m.name.as_str()).collect();
+    let bad: Vec<&str> =
+        matches.iter().filter(|m| m.rel.is_nan() || m.rel > tolerance).map(|m| m.name.as_str()).collect();
     if json {
         println!(
             "{}",
@@ -86,7 +87,7 @@ fn replay(plan: &Path, tensors: &Path, tolerance: f64, json: bool) -> anyhow::Re
         }
         if plan.manifest().quantization.is_some() {
             let ints = plan.integer_nodes();
-            let mut kernels: Vec<String> = ints.iter().map(|n| kernel_name(n)).collect();
+            let mut kernels: Vec<String> = ints.iter().map(kernel_name).collect();
             kernels.sort();
             kernels.dedup();
             println!("integer products: {} nodes ({})", ints.len(), kernels.join(", "));

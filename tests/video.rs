@@ -1,0 +1,185 @@
+//! `prl track --video`: a video FFmpeg encodes losslessly from a sequence's decoded frames gives
+//! exactly the boxes the frame folder gives; live pacing drops frames when the tracker is slower
+//! than the source and says how many; a missing file is a one-line error. Needs the `ffmpeg`
+//! and `ffprobe` programs (`.ci/run` installs them); without them these tests say so and pass.
+
+mod common;
+
+use std::io::Write;
+use std::path::Path;
+use std::process::{Command, Stdio};
+
+fn have_ffmpeg() -> bool {
+    let ok = ["ffmpeg", "ffprobe"]
+        .iter()
+        .all(|t| Command::new(t).arg("-version").stdout(Stdio::null()).stderr(Stdio::null()).status().is_ok());
+    if !ok {
+        eprintln!(
+            "NOTE: ffmpeg/ffprobe not found: the video input tests are NOT run here (sudo apt-get install ffmpeg)"
+        );
+    }
+    ok
+}
+
+/// FFV1 (lossless, `bgr0`) of `frames` BGR frames of `w`x`h`, piped raw into ffmpeg.
+fn encode(out: &Path, w: usize, h: usize, frames: impl Iterator<Item = Vec<u8>>) {
+    let mut ff = Command::new("ffmpeg")
+        .args(["-hide_banner", "-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "bgr24", "-s"])
+        .arg(format!("{w}x{h}"))
+        .args(["-r", "10", "-i", "-", "-c:v", "ffv1", "-pix_fmt", "bgr0", "-y"])
+        .arg(out)
+        .stdin(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stdin = ff.stdin.take().unwrap();
+    for f in frames {
+        stdin.write_all(&f).unwrap();
+    }
+    drop(stdin);
+    assert!(ff.wait().unwrap().success());
+}
+
+#[test]
+fn a_lossless_video_tracks_exactly_as_its_frames() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = common::nanotrack_plan(tmp.path());
+    let seq = prl_track::Sequence::open(&common::sequence("building4")).unwrap();
+    let n = 25;
+    let first = prl_track::load_frame(&seq.frames[0]).unwrap();
+    let (w, h) = (first.width(), first.height());
+    let video = tmp.path().join("building4.mkv");
+    encode(&video, w, h, seq.frames[..n].iter().map(|p| prl_track::load_frame(p).unwrap().bgr().to_vec()));
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let init = seq.groundtruth.as_ref().unwrap()[0];
+    let init = format!("{},{},{},{}", init[0] - 1.0, init[1] - 1.0, init[2], init[3]);
+    let (from_video, from_frames) = (tmp.path().join("video.txt"), tmp.path().join("frames.txt"));
+    let out = common::ok(&common::prl(&[
+        "track",
+        "--plan",
+        &s(&plan),
+        "--video",
+        &s(&video),
+        "--init",
+        &init,
+        "--results",
+        &s(&from_video),
+    ]));
+    assert!(out.contains("frames: 25 tracked, 0 dropped"), "{out}");
+    common::ok(&common::prl(&[
+        "track",
+        "--plan",
+        &s(&plan),
+        "--sequence",
+        &s(&common::sequence("building4")),
+        "--init",
+        &init,
+        "--max-frames",
+        &n.to_string(),
+        "--results",
+        &s(&from_frames),
+    ]));
+    let (a, b) = (std::fs::read_to_string(&from_video).unwrap(), std::fs::read_to_string(&from_frames).unwrap());
+    assert_eq!(a.lines().count(), n);
+    assert_eq!(a, b, "the video's boxes differ from the frames'");
+    // --jsonl: one object a frame on standard output, numbered from the init frame; then a
+    // later init frame.
+    let o = common::ok(&common::prl(&[
+        "track",
+        "--plan",
+        &s(&plan),
+        "--video",
+        &s(&video),
+        "--init",
+        &init,
+        "--jsonl",
+        "--init-frame",
+        "5",
+    ]));
+    let objs: Vec<serde_json::Value> = o.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(objs.len(), n - 5);
+    assert_eq!(objs[0]["frame"], 5);
+    assert_eq!(objs[0]["score"], 1.0);
+    assert!(objs.iter().all(|o| o["box"].as_array().unwrap().len() == 4 && o["time_s"].as_f64().is_some()));
+    // --vis-video: the video with the boxes, every frame, put in place at the end.
+    let vis = tmp.path().join("boxes.mkv");
+    common::ok(&common::prl(&[
+        "track",
+        "--plan",
+        &s(&plan),
+        "--video",
+        &s(&video),
+        "--init",
+        &init,
+        "--vis-video",
+        &s(&vis),
+        "--max-frames",
+        "8",
+    ]));
+    let probe = Command::new("ffprobe")
+        .args(["-v", "error", "-count_frames", "-select_streams", "v:0", "-show_entries", "stream=nb_read_frames"])
+        .args(["-of", "csv=p=0"])
+        .arg(&vis)
+        .output()
+        .unwrap();
+    assert_eq!(String::from_utf8_lossy(&probe.stdout).trim(), "8");
+    let leftovers = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().starts_with(".tmp-"));
+    assert_eq!(leftovers.count(), 0, "no temporary file left");
+    // Not a video: one line, naming it.
+    let junk = tmp.path().join("junk.mkv");
+    std::fs::write(&junk, vec![7u8; 5000]).unwrap();
+    let o = common::prl(&["track", "--plan", &s(&plan), "--video", &s(&junk), "--init", &init]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.trim().lines().count() == 1 && err.contains("junk.mkv"), "{err}");
+    // A missing file: one line, naming it.
+    let o = common::prl(&["track", "--plan", &s(&plan), "--video", "/nonexistent/v.mkv", "--init", &init]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.trim().lines().count() == 1 && err.contains("/nonexistent/v.mkv"), "{err}");
+}
+
+#[test]
+fn live_pacing_drops_frames_and_counts_them() {
+    if !have_ffmpeg() {
+        return;
+    }
+    // A 320x240 source that decodes far faster than PRL-Track's step.
+    let tmp = tempfile::tempdir().unwrap();
+    let video = tmp.path().join("fast.mkv");
+    let (w, h, n) = (320, 240, 120);
+    encode(&video, w, h, (0..n).map(|i| (0..w * h * 3).map(|k| ((k / 3 % w + 2 * i) % 256) as u8).collect()));
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let results = tmp.path().join("live.txt");
+    let out = common::ok(&common::prl(&[
+        "track",
+        "--plan",
+        &s(&common::reference_plan()),
+        "--video",
+        &s(&video),
+        "--init",
+        "100,80,60,50",
+        "--live",
+        "--threads",
+        "1",
+        "--results",
+        &s(&results),
+    ]));
+    let line = out.lines().find(|l| l.starts_with("frames: ")).unwrap();
+    let nums: Vec<usize> = line.split_whitespace().filter_map(|w| w.parse().ok()).take(2).collect();
+    let (tracked, dropped) = (nums[0], nums[1]);
+    assert!(dropped > 0 && tracked + dropped <= n, "{line}");
+    // Each result carries its frame number, increasing; together with the dropped ones they
+    // account for every frame up to the last tracked one.
+    let frames: Vec<usize> = std::fs::read_to_string(&results)
+        .unwrap()
+        .lines()
+        .map(|l| l.split(',').next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(frames.len(), tracked);
+    assert!(frames.windows(2).all(|p| p[0] < p[1]), "{frames:?}");
+    assert_eq!(frames[0], 0);
+    assert_eq!(*frames.last().unwrap() + 1, tracked + dropped, "{frames:?} {line}");
+}
