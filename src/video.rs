@@ -54,13 +54,15 @@ pub struct VideoSource {
     height: usize,
     child: Child,
     reader: Reader,
+    /// The first frame handed over.
+    first: usize,
     /// Frames dropped so far (live pacing).
     dropped: usize,
     last_index: Option<usize>,
 }
 
 enum Reader {
-    Every { pipe: ChildStdout, next: usize, start: Instant },
+    Every { pipe: ChildStdout, next: usize, start: Instant, first: usize },
     Live { slot: Arc<(Mutex<Slot>, Condvar)> },
 }
 
@@ -98,8 +100,10 @@ fn last_line(stderr: &[u8], fallback: &str) -> String {
 }
 
 impl VideoSource {
-    /// Open `src` (a file, `/dev/videoN`, or a stream URL) and start decoding it.
-    pub fn open(src: &str, pacing: Pacing) -> Result<VideoSource, VideoError> {
+    /// Open `src` (a file, `/dev/videoN`, or a stream URL) and start decoding it. Frames before
+    /// number `first` are skipped; frame `first` (the one a tracker is initialised on) is always
+    /// handed over, live or not.
+    pub fn open(src: &str, pacing: Pacing, first: usize) -> Result<VideoSource, VideoError> {
         let err = |msg: String| VideoError { src: src.to_string(), msg };
         let mut probe = Command::new("ffprobe");
         probe.args(["-v", "error", "-select_streams", "v:0", "-show_entries", "stream=width,height", "-of", "csv=p=0"]);
@@ -130,15 +134,15 @@ impl VideoSource {
         let pipe = child.stdout.take().expect("piped");
         let bytes = width * height * 3;
         let reader = match pacing {
-            Pacing::Every => Reader::Every { pipe, next: 0, start: Instant::now() },
+            Pacing::Every => Reader::Every { pipe, next: 0, start: Instant::now(), first },
             Pacing::Live => {
                 let slot = Arc::new((Mutex::new(Slot::default()), Condvar::new()));
                 let shared = Arc::clone(&slot);
-                std::thread::spawn(move || live_reader(pipe, bytes, shared));
+                std::thread::spawn(move || live_reader(pipe, bytes, first, shared));
                 Reader::Live { slot }
             }
         };
-        Ok(VideoSource { src: src.to_string(), width, height, child, reader, dropped: 0, last_index: None })
+        Ok(VideoSource { src: src.to_string(), width, height, child, reader, first, dropped: 0, last_index: None })
     }
 
     /// The frames' width and height.
@@ -155,19 +159,24 @@ impl VideoSource {
     pub fn next_frame(&mut self) -> Result<Option<VideoFrame>, VideoError> {
         let bytes = self.width * self.height * 3;
         let got = match &mut self.reader {
-            Reader::Every { pipe, next, start } => match read_frame(pipe, bytes) {
-                Ok(Some(buf)) => {
-                    *next += 1;
-                    Some((*next - 1, start.elapsed(), buf))
+            Reader::Every { pipe, next, start, first } => loop {
+                match read_frame(pipe, bytes) {
+                    Ok(Some(buf)) => {
+                        *next += 1;
+                        if *next > *first {
+                            break Some((*next - 1, start.elapsed(), buf));
+                        }
+                    }
+                    Ok(None) => break None,
+                    Err(msg) => return Err(self.failure(msg)),
                 }
-                Ok(None) => None,
-                Err(msg) => return Err(self.failure(msg)),
             },
             Reader::Live { slot } => {
                 let (lock, ready) = &**slot;
                 let mut s = lock.lock().expect("reader thread does not panic holding the lock");
                 loop {
                     if let Some(f) = s.frame.take() {
+                        ready.notify_one();
                         break Some(f);
                     }
                     match &s.ended {
@@ -185,7 +194,7 @@ impl VideoSource {
         let Some((index, time, buf)) = got else {
             return self.finish().map(|()| None);
         };
-        self.dropped += index - self.last_index.map_or(0, |l| l + 1);
+        self.dropped += index - self.last_index.map_or(self.first, |l| l + 1);
         self.last_index = Some(index);
         let frame = Frame::from_bgr(self.width, self.height, buf)
             .map_err(|e| VideoError { src: self.src.clone(), msg: e.to_string() })?;
@@ -240,13 +249,24 @@ fn read_frame(pipe: &mut impl Read, bytes: usize) -> Result<Option<Vec<u8>>, Str
     Ok(Some(buf))
 }
 
-/// The live reader: keeps only the newest frame in the slot.
-fn live_reader(mut pipe: ChildStdout, bytes: usize, slot: Arc<(Mutex<Slot>, Condvar)>) {
+/// The live reader: keeps only the newest frame in the slot, from frame `first` on (which it
+/// never overwrites: the tracker starts on it).
+fn live_reader(mut pipe: ChildStdout, bytes: usize, first: usize, slot: Arc<(Mutex<Slot>, Condvar)>) {
     let start = Instant::now();
     let (lock, ready) = &*slot;
     for index in 0.. {
         let got = read_frame(&mut pipe, bytes);
+        if index < first && matches!(got, Ok(Some(_))) {
+            continue;
+        }
         let Ok(mut s) = lock.lock() else { return };
+        if index == first + 1 {
+            // Wait until the first frame has been taken.
+            while s.frame.is_some() {
+                let Ok(next) = ready.wait(s) else { return };
+                s = next;
+            }
+        }
         match got {
             Ok(Some(buf)) => s.frame = Some((index, start.elapsed(), buf)),
             Ok(None) => s.ended = Some(Ok(())),

@@ -251,7 +251,7 @@ fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
     ));
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config);
-    let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every })?;
+    let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every }, a.init_frame)?;
     let (w, h) = video.size();
     say(format!("video: {src}, {w}x{h}, {}", if a.live { "live (newest frame)" } else { "every frame" }));
     if let Some(dir) = &a.vis {
@@ -264,16 +264,13 @@ fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
     // Frame number and time of every frame tracked.
     let stamps: RefCell<Vec<(usize, f64)>> = RefCell::new(vec![]);
     let limit = a.max_frames.unwrap_or(usize::MAX).max(1);
-    let next = || loop {
+    let next = || {
         if stamps.borrow().len() >= limit {
             return Ok(None);
         }
         let Some(vf) = video.next_frame()? else { return Ok(None) };
-        if vf.index < a.init_frame {
-            continue;
-        }
         stamps.borrow_mut().push((vf.index, vf.time.as_secs_f64()));
-        return Ok(Some((vf.frame, format!("{src} frame {}", vf.index))));
+        Ok(Some((vf.frame, format!("{src} frame {}", vf.index))))
     };
     let run = tracking::track_stream(&mut tracker, next, init, 0, |i, f, b, score| {
         let (index, time) = stamps.borrow()[i];
