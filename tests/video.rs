@@ -56,48 +56,24 @@ fn a_lossless_video_tracks_exactly_as_its_frames() {
     let init = seq.groundtruth.as_ref().unwrap()[0];
     let init = format!("{},{},{},{}", init[0] - 1.0, init[1] - 1.0, init[2], init[3]);
     let (from_video, from_frames) = (tmp.path().join("video.txt"), tmp.path().join("frames.txt"));
-    let out = common::ok(&common::prl(&[
-        "track",
-        "--plan",
-        &s(&plan),
-        "--video",
-        &s(&video),
-        "--init",
-        &init,
-        "--results",
-        &s(&from_video),
-    ]));
+    let (plan_s, video_s) = (s(&plan), s(&video));
+    // `prl track` on the video with `extra` options.
+    let on_video = |extra: &[&str]| {
+        let base = ["track", "--plan", plan_s.as_str(), "--video", video_s.as_str(), "--init", init.as_str()];
+        common::prl(&[&base[..], extra].concat())
+    };
+    let out = common::ok(&on_video(&["--results", &s(&from_video)]));
     assert!(out.contains("frames: 25 tracked, 0 dropped"), "{out}");
-    common::ok(&common::prl(&[
-        "track",
-        "--plan",
-        &s(&plan),
-        "--sequence",
-        &s(&common::sequence("building4")),
-        "--init",
-        &init,
-        "--max-frames",
-        &n.to_string(),
-        "--results",
-        &s(&from_frames),
-    ]));
+    let seq_dir = s(&common::sequence("building4"));
+    let n_s = n.to_string();
+    let frames_args = ["--sequence", &seq_dir, "--init", &init, "--max-frames", &n_s, "--results", &s(&from_frames)];
+    common::ok(&common::prl(&[&["track", "--plan", &plan_s][..], &frames_args].concat()));
     let (a, b) = (std::fs::read_to_string(&from_video).unwrap(), std::fs::read_to_string(&from_frames).unwrap());
     assert_eq!(a.lines().count(), n);
     assert_eq!(a, b, "the video's boxes differ from the frames'");
     // --jsonl: one object a frame on standard output, numbered from the init frame; then a
     // later init frame.
-    let o = common::ok(&common::prl(&[
-        "track",
-        "--plan",
-        &s(&plan),
-        "--video",
-        &s(&video),
-        "--init",
-        &init,
-        "--jsonl",
-        "--init-frame",
-        "5",
-    ]));
+    let o = common::ok(&on_video(&["--jsonl", "--init-frame", "5"]));
     let objs: Vec<serde_json::Value> = o.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!(objs.len(), n - 5);
     assert_eq!(objs[0]["frame"], 5);
@@ -105,19 +81,7 @@ fn a_lossless_video_tracks_exactly_as_its_frames() {
     assert!(objs.iter().all(|o| o["box"].as_array().unwrap().len() == 4 && o["time_s"].as_f64().is_some()));
     // --vis-video: the video with the boxes, every frame, put in place at the end.
     let vis = tmp.path().join("boxes.mkv");
-    common::ok(&common::prl(&[
-        "track",
-        "--plan",
-        &s(&plan),
-        "--video",
-        &s(&video),
-        "--init",
-        &init,
-        "--vis-video",
-        &s(&vis),
-        "--max-frames",
-        "8",
-    ]));
+    common::ok(&on_video(&["--vis-video", &s(&vis), "--max-frames", "8"]));
     let probe = Command::new("ffprobe")
         .args(["-v", "error", "-count_frames", "-select_streams", "v:0", "-show_entries", "stream=nb_read_frames"])
         .args(["-of", "csv=p=0"])
