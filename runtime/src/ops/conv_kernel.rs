@@ -242,11 +242,7 @@ mod tests {
         assert!(a.iter().all(|v| *v != 0.0));
         // Every fused path (AVX-512, AVX2, NEON) sums in the same order with one rounding per
         // multiply-add: the same bits as the portable fused loop, so plans agree across CPUs.
-        #[cfg(target_arch = "x86_64")]
-        let fused = super::super::avx2_fma();
-        #[cfg(not(target_arch = "x86_64"))]
-        let fused = cfg!(target_arch = "aarch64");
-        if fused {
+        if crate::isa().f32_kernel() != F32Kernel::Portable {
             let mut c = a.clone();
             positions::<true>(&l, &padded, &weights, &bias, &mut c);
             assert!(a == c, "the dispatched fused kernel differs from the portable fused loop");
