@@ -169,6 +169,13 @@ pub fn isa() -> &'static Isa {
     })
 }
 
+/// The f32 kernel path of [`isa`] ([`Isa::f32_kernel`]), chosen once: the operators ask for it
+/// on every call, some of them per tile.
+pub fn f32_kernel() -> F32Kernel {
+    static KERNEL: OnceLock<F32Kernel> = OnceLock::new();
+    *KERNEL.get_or_init(|| isa().f32_kernel())
+}
+
 /// A message when `PRL_ISA` is set to a value the runtime does not know.
 pub fn isa_warning() -> Option<String> {
     let cap = std::env::var("PRL_ISA").ok()?;

@@ -125,7 +125,7 @@ const NR: usize = 16;
 /// `ldb` (a multiple of [`NR`], at least `n`, zero past `n`), `dst` rows of `n`. Sums in order
 /// of `k`.
 fn gemm(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
-    match crate::isa().f32_kernel() {
+    match crate::isa::f32_kernel() {
         // SAFETY: the CPU has the features the function is compiled for (the table's needs).
         #[cfg(target_arch = "x86_64")]
         F32Kernel::Avx512 => unsafe { gemm_avx512(dst, n, a, kl, b, ldb) },
@@ -206,7 +206,7 @@ impl EvalOp for RowSoftmax {
 }
 
 fn softmax_row(r: &mut [f32]) {
-    match crate::isa().f32_kernel() {
+    match crate::isa::f32_kernel() {
         // SAFETY: the CPU has the features the function is compiled for (the table's needs).
         #[cfg(target_arch = "x86_64")]
         F32Kernel::Avx512 => unsafe { softmax_row_avx512(r) },

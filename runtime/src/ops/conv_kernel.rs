@@ -39,7 +39,7 @@ impl Layout {
 pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
     assert!(weights.len() == l.taps.len() * ROWS);
     assert!(l.taps.iter().all(|&t| t + l.positions() + MAX_PX <= padded.len()));
-    match crate::isa().f32_kernel() {
+    match crate::isa::f32_kernel() {
         // SAFETY: the CPU has AVX-512F; every load stays in `padded` and `weights` (asserted).
         #[cfg(target_arch = "x86_64")]
         F32Kernel::Avx512 => unsafe { positions_avx512(l, padded, weights, bias, out) },
@@ -242,7 +242,7 @@ mod tests {
         assert!(a.iter().all(|v| *v != 0.0));
         // Every fused path (AVX-512, AVX2, NEON) sums in the same order with one rounding per
         // multiply-add: the same bits as the portable fused loop, so plans agree across CPUs.
-        if crate::isa().f32_kernel() != F32Kernel::Portable {
+        if crate::isa::f32_kernel() != F32Kernel::Portable {
             let mut c = a.clone();
             positions::<true>(&l, &padded, &weights, &bias, &mut c);
             assert!(a == c, "the dispatched fused kernel differs from the portable fused loop");

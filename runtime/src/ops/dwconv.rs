@@ -100,7 +100,7 @@ mod kernel {
     /// `offset + y * wq`).
     pub(super) fn rows(src: &[f32], wq: usize, offs: &[usize], ws: &[f32], bias: f32, dst: &mut [f32], ow: usize) {
         use crate::isa::F32Kernel;
-        match crate::isa().f32_kernel() {
+        match crate::isa::f32_kernel() {
             // SAFETY: the CPU has AVX-512F, AVX2 and FMA (the table's needs).
             #[cfg(target_arch = "x86_64")]
             F32Kernel::Avx512 => unsafe { rows_avx512(src, wq, offs, ws, bias, dst, ow) },

@@ -59,7 +59,7 @@ impl DepthwiseConvHwc {
 
     /// Output row `y` (`ow · c` values) into `dst`.
     fn row(&self, input: &[f32], y: usize, dst: &mut [f32]) {
-        match crate::isa().f32_kernel() {
+        match crate::isa::f32_kernel() {
             // SAFETY: the CPU has the features the function is compiled for (the table's needs).
             #[cfg(target_arch = "x86_64")]
             F32Kernel::Avx512 => unsafe { row_avx512(self, input, y, dst) },

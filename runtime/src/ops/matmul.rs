@@ -110,7 +110,7 @@ fn tile(panel: &[f32], x: &[f32], k: usize, j0: usize, rows: usize) -> [[f32; PA
     // Rows past the last are the last again (computed, not stored).
     let xs: [&[f32]; ROWS] = std::array::from_fn(|r| &x[(j0 + r.min(rows - 1)) * k..][..k]);
     #[cfg(target_arch = "x86_64")]
-    if crate::isa().f32_kernel() == crate::isa::F32Kernel::Avx512 {
+    if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 {
         // SAFETY: the CPU has the features the function is compiled for (the table's needs).
         return unsafe { tile_avx512(panel, xs) };
     }
@@ -158,7 +158,7 @@ unsafe fn tile_avx512(panel: &[f32], xs: [&[f32]; ROWS]) -> [[f32; PANEL]; ROWS]
 /// Half a panel (16 features) on 16-lane registers: AVX2 + FMA, NEON, or plain.
 fn tile_half(panel: &[f32], half: usize, xs: [&[f32]; ROWS]) -> [[f32; 16]; ROWS] {
     use crate::isa::F32Kernel;
-    match crate::isa().f32_kernel() {
+    match crate::isa::f32_kernel() {
         // SAFETY: the CPU has the features the function is compiled for (AVX-512 implies
         // AVX2 + FMA).
         #[cfg(target_arch = "x86_64")]

@@ -189,7 +189,7 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
     let isa = crate::isa();
     match op {
         "PackedConv" | "DepthwiseConv" | "DepthwiseConvHwc" | "DepthwiseXCorr" | "ConstMatMul" | "AttnScores"
-        | "AttnMix" | "RowSoftmax" | "QuantizeU8" => isa.f32_kernel().name().to_string(),
+        | "AttnMix" | "RowSoftmax" | "QuantizeU8" => crate::isa::f32_kernel().name().to_string(),
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
         "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" => "portable (vectorised)".to_string(),
         _ => info

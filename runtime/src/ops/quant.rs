@@ -43,7 +43,7 @@ mod kernel {
     pub(super) fn quantize(xs: &[f32], ys: &mut [u8], scale: f32, zp: i32) {
         #[cfg(target_arch = "x86_64")]
         use crate::isa::F32Kernel;
-        match crate::isa().f32_kernel() {
+        match crate::isa::f32_kernel() {
             // SAFETY: the CPU has AVX-512F, AVX2 and FMA (the table's needs).
             #[cfg(target_arch = "x86_64")]
             F32Kernel::Avx512 => unsafe { quantize_avx512(xs, ys, scale, zp) },

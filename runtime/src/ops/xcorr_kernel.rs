@@ -56,7 +56,7 @@ pub(crate) fn correlate_channel(
         dst[g.w..].fill(0.0);
     }
     use crate::isa::F32Kernel;
-    match crate::isa().f32_kernel() {
+    match crate::isa::f32_kernel() {
         // SAFETY: the CPU has the features the function is compiled for (the table's needs).
         #[cfg(target_arch = "x86_64")]
         F32Kernel::Avx512 => unsafe { strips_avx512(g, scratch, kernel, bias, out) },
