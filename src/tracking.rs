@@ -131,29 +131,47 @@ impl<F: FnMut(usize) -> Frame> Frames for MadeFrames<F> {
 /// and its box as it goes (for drawing or progress); an error from it stops the run.
 pub fn track(
     tracker: &mut Tracker,
-    mut frames: impl Frames,
+    frames: impl Frames,
     init: BBox,
     mut on_frame: impl FnMut(usize, &Frame, &BBox) -> Result<(), String>,
 ) -> Result<TrackRun, TrackError> {
     let n = frames.len();
-    let mut i = 0;
-    let next = || {
-        if i == n {
-            return Ok(None);
-        }
-        let f = frames.frame(i)?;
-        i += 1;
-        Ok(Some((f, frames.label(i - 1))))
-    };
-    track_stream(tracker, next, init, n, |i, f, b, _| on_frame(i, f, b))
+    track_stream(tracker, InOrder { frames, next: 0 }, init, n, |i, f, b, _| on_frame(i, f, b))
 }
 
-/// Track through frames that come one after another (a video, a camera, a stream: the length
-/// need not be known): `next()` gives each with its label for errors, `None` at the end.
+/// Frames that come one after another (a video, a camera, a stream: the length need not be
+/// known).
+pub trait FrameStream {
+    /// The next frame, or `None` at the end.
+    fn next_frame(&mut self) -> Result<Option<Frame>, TrackError>;
+    /// The frame last given, as errors name it (asked only when there is an error).
+    fn label(&self) -> String;
+}
+
+/// [`Frames`] one after another.
+struct InOrder<F> {
+    frames: F,
+    next: usize,
+}
+
+impl<F: Frames> FrameStream for InOrder<F> {
+    fn next_frame(&mut self) -> Result<Option<Frame>, TrackError> {
+        if self.next == self.frames.len() {
+            return Ok(None);
+        }
+        self.next += 1;
+        Ok(Some(self.frames.frame(self.next - 1)?))
+    }
+    fn label(&self) -> String {
+        self.frames.label(self.next.saturating_sub(1))
+    }
+}
+
+/// Track through `frames` as they come. `expected` (how many, if known) sizes the results;
 /// `on_frame(i, frame, box, score)` sees every frame as it goes.
 pub fn track_stream(
     tracker: &mut Tracker,
-    mut next: impl FnMut() -> Result<Option<(Frame, String)>, TrackError>,
+    mut frames: impl FrameStream,
     init: BBox,
     expected: usize,
     mut on_frame: impl FnMut(usize, &Frame, &BBox, f64) -> Result<(), String>,
@@ -168,9 +186,9 @@ pub fn track_stream(
     let mut size = (0, 0);
     for i in 0.. {
         let t = Instant::now();
-        let Some((f, label)) = next()? else { break };
+        let Some(f) = frames.next_frame()? else { break };
         let decode = t.elapsed();
-        let err = |source| TrackError::Tracker { label: label.clone(), source };
+        let err = |source| TrackError::Tracker { label: frames.label(), source };
         if i == 0 {
             size = (f.width(), f.height());
             tracker.init(&f, init).map_err(err)?;
@@ -179,7 +197,7 @@ pub fn track_stream(
         } else {
             if (f.width(), f.height()) != size {
                 let (got_w, got_h) = (f.width(), f.height());
-                return Err(TrackError::Size { label, got_w, got_h, w: size.0, h: size.1 });
+                return Err(TrackError::Size { label: frames.label(), got_w, got_h, w: size.0, h: size.1 });
             }
             let p = tracker.track(&f).map_err(err)?;
             run.boxes.push(p.bbox);

@@ -192,7 +192,8 @@ impl VideoSource {
             }
         };
         let Some((index, time, buf)) = got else {
-            return self.finish().map(|()| None);
+            // The source's end: FFmpeg's exit status says whether it ended cleanly.
+            return wait_for(&mut self.child, &self.src).map(|()| None);
         };
         self.dropped += index - self.last_index.map_or(self.first, |l| l + 1);
         self.last_index = Some(index);
@@ -201,25 +202,10 @@ impl VideoSource {
         Ok(Some(VideoFrame { index, time, frame }))
     }
 
-    /// The source's end: FFmpeg's exit status says whether it ended cleanly.
-    fn finish(&mut self) -> Result<(), VideoError> {
-        let mut stderr = vec![];
-        if let Some(mut e) = self.child.stderr.take() {
-            let _ = e.read_to_end(&mut stderr);
-        }
-        match self.child.wait() {
-            Ok(s) if s.success() => Ok(()),
-            Ok(s) => {
-                Err(VideoError { src: self.src.clone(), msg: last_line(&stderr, &format!("ffmpeg exited with {s}")) })
-            }
-            Err(e) => Err(VideoError { src: self.src.clone(), msg: format!("ffmpeg: {e}") }),
-        }
-    }
-
     /// A read failure, with FFmpeg's own reason where it gave one.
     fn failure(&mut self, msg: String) -> VideoError {
         let _ = self.child.kill();
-        match self.finish() {
+        match wait_for(&mut self.child, &self.src) {
             Err(e) if !e.msg.starts_with("ffmpeg exited") => e,
             _ => VideoError { src: self.src.clone(), msg },
         }
@@ -230,6 +216,21 @@ impl Drop for VideoSource {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+    }
+}
+
+/// Wait for FFmpeg to exit: an error with its last line of standard error (its reason) unless it
+/// succeeded.
+fn wait_for(child: &mut Child, src: &str) -> Result<(), VideoError> {
+    let mut stderr = vec![];
+    if let Some(mut e) = child.stderr.take() {
+        let _ = e.read_to_end(&mut stderr);
+    }
+    let err = |msg: String| VideoError { src: src.to_string(), msg };
+    match child.wait() {
+        Ok(s) if s.success() => Ok(()),
+        Ok(s) => Err(err(last_line(&stderr, &format!("ffmpeg exited with {s}")))),
+        Err(e) => Err(err(format!("ffmpeg: {e}"))),
     }
 }
 
@@ -328,14 +329,7 @@ impl VideoWriter {
     pub fn finish(mut self) -> Result<(), VideoError> {
         let src = self.path.display().to_string();
         drop(self.stdin.take());
-        let mut stderr = vec![];
-        if let Some(mut e) = self.child.stderr.take() {
-            let _ = e.read_to_end(&mut stderr);
-        }
-        let status = self.child.wait().map_err(|e| VideoError { src: src.clone(), msg: format!("ffmpeg: {e}") })?;
-        if !status.success() {
-            return Err(VideoError { src, msg: last_line(&stderr, &format!("ffmpeg exited with {status}")) });
-        }
+        wait_for(&mut self.child, &src)?;
         std::fs::rename(&self.tmp, &self.path).map_err(|e| VideoError { src, msg: format!("cannot write: {e}") })
     }
 }

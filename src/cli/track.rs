@@ -201,21 +201,7 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     if let Some(dir) = &a.vis {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
-    let t = Instant::now();
-    let plan = Plan::load(&a.plan)?;
-    let m = plan.manifest();
-    println!(
-        "plan: {} ({}, {}), loaded in {} ms",
-        a.plan.display(),
-        m.precision,
-        m.weights.note,
-        t.elapsed().as_millis()
-    );
-    if plan.manifest().weights.kind == "random" {
-        eprintln!("note: {} holds RANDOM weights: it runs, but it cannot track", a.plan.display());
-    }
-    let config = plan.manifest().tracker.clone();
-    let mut tracker = Tracker::new(plan, config);
+    let mut tracker = open_tracker(&a.plan, |line| println!("{line}"))?;
     let run = track_with_progress(&mut tracker, frames.as_slice(), init, |i, f, b| match &a.vis {
         Some(dir) => save_vis(dir, i, f, b, gt.as_ref().and_then(|g| g.get(i).copied())),
         None => Ok(()),
@@ -232,6 +218,26 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The tracker of the plan in `dir`, with its own settings; `say` prints the line about the plan
+/// (a plan of random weights is noted on standard error).
+fn open_tracker(dir: &Path, say: impl Fn(String)) -> anyhow::Result<Tracker> {
+    let t = Instant::now();
+    let plan = Plan::load(dir)?;
+    let m = plan.manifest();
+    say(format!(
+        "plan: {} ({}, {}), loaded in {} ms",
+        dir.display(),
+        m.precision,
+        m.weights.note,
+        t.elapsed().as_millis()
+    ));
+    if m.weights.kind == "random" {
+        eprintln!("note: {} holds RANDOM weights: it runs, but it cannot track", dir.display());
+    }
+    let config = m.tracker.clone();
+    Ok(Tracker::new(plan, config))
+}
+
 /// `prl track --video SRC`: decode with FFmpeg and track every frame (or the newest, `--live`).
 fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
     use prl_track::video::{Pacing, VideoSource};
@@ -239,18 +245,7 @@ fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
     // With --jsonl, standard output carries the per-frame objects only.
     let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
     // The plan first (a bad plan fails before a camera starts), then the source.
-    let t = Instant::now();
-    let plan = Plan::load(&a.plan)?;
-    let m = plan.manifest();
-    say(format!(
-        "plan: {} ({}, {}), loaded in {} ms",
-        a.plan.display(),
-        m.precision,
-        m.weights.note,
-        t.elapsed().as_millis()
-    ));
-    let config = plan.manifest().tracker.clone();
-    let mut tracker = Tracker::new(plan, config);
+    let mut tracker = open_tracker(&a.plan, say)?;
     let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every }, a.init_frame)?;
     let (w, h) = video.size();
     say(format!("video: {src}, {w}x{h}, {}", if a.live { "live (newest frame)" } else { "every frame" }));
@@ -264,15 +259,8 @@ fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
     // Frame number and time of every frame tracked.
     let stamps: RefCell<Vec<(usize, f64)>> = RefCell::new(vec![]);
     let limit = a.max_frames.unwrap_or(usize::MAX).max(1);
-    let next = || {
-        if stamps.borrow().len() >= limit {
-            return Ok(None);
-        }
-        let Some(vf) = video.next_frame()? else { return Ok(None) };
-        stamps.borrow_mut().push((vf.index, vf.time.as_secs_f64()));
-        Ok(Some((vf.frame, format!("{src} frame {}", vf.index))))
-    };
-    let run = tracking::track_stream(&mut tracker, next, init, 0, |i, f, b, score| {
+    let frames = VideoFrames { video: &mut video, src, stamps: &stamps, limit };
+    let run = tracking::track_stream(&mut tracker, frames, init, 0, |i, f, b, score| {
         let (index, time) = stamps.borrow()[i];
         if a.jsonl {
             let o = serde_json::json!({ "frame": index, "time_s": time, "box": [b.x, b.y, b.w, b.h], "score": score });
@@ -320,4 +308,28 @@ fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
         summary.network_ms
     ));
     Ok(())
+}
+
+/// A video's frames for the tracking loop, each one's number and time noted in `stamps`.
+struct VideoFrames<'a> {
+    video: &'a mut prl_track::video::VideoSource,
+    src: &'a str,
+    stamps: &'a std::cell::RefCell<Vec<(usize, f64)>>,
+    /// Frames to track at most.
+    limit: usize,
+}
+
+impl tracking::FrameStream for VideoFrames<'_> {
+    fn next_frame(&mut self) -> Result<Option<Frame>, tracking::TrackError> {
+        if self.stamps.borrow().len() >= self.limit {
+            return Ok(None);
+        }
+        let Some(vf) = self.video.next_frame()? else { return Ok(None) };
+        self.stamps.borrow_mut().push((vf.index, vf.time.as_secs_f64()));
+        Ok(Some(vf.frame))
+    }
+    fn label(&self) -> String {
+        let last = self.stamps.borrow().last().map_or(0, |s| s.0);
+        format!("{} frame {last}", self.src)
+    }
 }
