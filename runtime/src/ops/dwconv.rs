@@ -13,7 +13,7 @@ use std::sync::Arc;
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::conv::ConvShape;
+use super::conv::{ConstConv, ConvShape};
 use super::{output_tensor, par_chunks, same_bits};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
@@ -319,25 +319,34 @@ impl TypedOp for DepthwiseConv {
     as_op!();
 }
 
-/// The [`DepthwiseConv`] for `node` of `model` if it is a [`super::conv::ConstConv`] with one
-/// group per channel, NCHW (or CHW, where tract dropped a batch axis of 1).
-pub(crate) fn depthwise(model: &TypedModel, node: &TypedNode) -> TractResult<Option<DepthwiseConv>> {
-    let Some(c) = super::conv::const_conv(model, node)? else { return Ok(None) };
+/// A [`ConstConv`] with one group per channel, its data format (NCHW, CHW or HWC) and its
+/// shape, if its padded input holds the kernel: what both depthwise operators take.
+pub(super) fn depthwise_shape(c: &ConstConv) -> Option<(DataFormat, ConvShape)> {
     let ps = &c.conv.pool_spec;
-    let g = c.conv.group;
-    if !(g > 1 && g == ps.input_channels && g == ps.output_channels) {
-        return Ok(None);
-    }
-    let (batch, (ci, h, w)) = match (ps.data_format, c.input) {
-        (DataFormat::NCHW, &[_, ci, h, w]) => (true, (ci, h, w)),
-        (DataFormat::CHW, &[ci, h, w]) => (false, (ci, h, w)),
-        _ => return Ok(None),
+    let (ci, h, w) = match (ps.data_format, c.input) {
+        (DataFormat::NCHW, &[_, ci, h, w]) | (DataFormat::CHW, &[ci, h, w]) | (DataFormat::HWC, &[h, w, ci]) => {
+            (ci, h, w)
+        }
+        _ => return None,
     };
+    let g = c.conv.group;
+    if !(g > 1 && g == ci && g == ps.input_channels && g == ps.output_channels) {
+        return None;
+    }
     let (kh, kw) = c.kernel;
     let shape = ConvShape { ci, h, w, co: ci, kh, kw, pad: c.pad, stride: c.stride };
-    if shape.padded().0 < kh || shape.padded().1 < kw {
-        return Ok(None);
-    }
+    (shape.padded().0 >= kh && shape.padded().1 >= kw).then_some((ps.data_format, shape))
+}
+
+/// The [`DepthwiseConv`] for `node` of `model` if it is a [`ConstConv`] with one group per
+/// channel, NCHW (or CHW, where tract dropped a batch axis of 1).
+pub(crate) fn depthwise(model: &TypedModel, node: &TypedNode) -> TractResult<Option<DepthwiseConv>> {
+    let Some(c) = super::conv::const_conv(model, node)? else { return Ok(None) };
+    let (batch, shape) = match depthwise_shape(&c) {
+        Some((DataFormat::NCHW, shape)) => (true, shape),
+        Some((DataFormat::CHW, shape)) => (false, shape),
+        _ => return Ok(None),
+    };
     Ok(Some(DepthwiseConv::new(shape, batch, c.weight, c.bias)?))
 }
 

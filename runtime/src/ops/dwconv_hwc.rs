@@ -247,17 +247,7 @@ impl TypedOp for DepthwiseConvHwc {
 /// group per channel on `HWC` data.
 pub(crate) fn depthwise_hwc(model: &TypedModel, node: &TypedNode) -> TractResult<Option<DepthwiseConvHwc>> {
     let Some(c) = super::conv::const_conv(model, node)? else { return Ok(None) };
-    let ps = &c.conv.pool_spec;
-    let g = c.conv.group;
-    let (DataFormat::HWC, &[h, w, ci]) = (ps.data_format, c.input) else { return Ok(None) };
-    if !(g > 1 && g == ci && g == ps.input_channels && g == ps.output_channels) {
-        return Ok(None);
-    }
-    let (kh, kw) = c.kernel;
-    let shape = ConvShape { ci, h, w, co: ci, kh, kw, pad: c.pad, stride: c.stride };
-    if shape.padded().0 < kh || shape.padded().1 < kw {
-        return Ok(None);
-    }
+    let Some((DataFormat::HWC, shape)) = super::dwconv::depthwise_shape(&c) else { return Ok(None) };
     Ok(Some(DepthwiseConvHwc::new(shape, c.weight, c.bias)?))
 }
 
