@@ -20,19 +20,23 @@ pub struct Frame {
     bgr: Vec<u8>,
 }
 
+/// That `len` bytes are exactly a `width` x `height` BGR frame, not empty.
+fn check_size(width: usize, height: usize, len: usize) -> Result<()> {
+    if width == 0 || height == 0 {
+        return Err(Error::Input(format!("empty frame ({width}x{height})")));
+    }
+    let need = width.checked_mul(height).and_then(|n| n.checked_mul(3));
+    if need != Some(len) {
+        let need = need.map_or_else(|| "more than usize".to_string(), |n| n.to_string());
+        return Err(Error::Input(format!("a {width}x{height} frame needs {need} bytes, got {len}")));
+    }
+    Ok(())
+}
+
 impl Frame {
     /// A frame from a raw interleaved buffer of `width * height * 3` bytes in `layout`.
     pub fn from_raw(width: usize, height: usize, data: &[u8], layout: PixelLayout) -> Result<Self> {
-        if width == 0 || height == 0 {
-            return Err(Error::Input(format!("empty frame ({width}x{height})")));
-        }
-        if data.len() != width * height * 3 {
-            return Err(Error::Input(format!(
-                "a {width}x{height} frame needs {} bytes, got {}",
-                width * height * 3,
-                data.len()
-            )));
-        }
+        check_size(width, height, data.len())?;
         let bgr = match layout {
             PixelLayout::Bgr => data.to_vec(),
             PixelLayout::Rgb => data.chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect(),
@@ -43,9 +47,7 @@ impl Frame {
     /// A frame that takes over a BGR buffer of `width * height * 3` bytes (no copy: decoded video
     /// frames).
     pub fn from_bgr(width: usize, height: usize, bgr: Vec<u8>) -> Result<Self> {
-        if width == 0 || height == 0 || width.checked_mul(height).and_then(|n| n.checked_mul(3)) != Some(bgr.len()) {
-            return Err(Error::Input(format!("a {width}x{height} frame from {} bytes", bgr.len())));
-        }
+        check_size(width, height, bgr.len())?;
         Ok(Frame { width, height, bgr })
     }
 

@@ -158,6 +158,8 @@ pub struct NodeInfo {
     /// tract's own description of it (for matrix products: shapes and the kernel chosen, such
     /// as `avx512vnni_mmm_i32_16x16` for an int8 product).
     pub info: String,
+    /// The kernel it runs, as [`NodeTime::kernel`] names it.
+    pub kernel: String,
 }
 
 impl Plan {
@@ -167,10 +169,9 @@ impl Plan {
         model
             .nodes()
             .iter()
-            .map(|n| NodeInfo {
-                name: n.name.clone(),
-                op: n.op().name().to_string(),
-                info: n.op().info().map(|v| v.join("; ")).unwrap_or_default(),
+            .map(|n| {
+                let (op, info) = (n.op().name().to_string(), n.op().info().map(|v| v.join("; ")).unwrap_or_default());
+                NodeInfo { name: n.name.clone(), kernel: crate::ops::kernel_name(&op, &info), op, info }
             })
             .collect()
     }

@@ -87,7 +87,7 @@ fn replay(plan: &Path, tensors: &Path, tolerance: f64, json: bool) -> anyhow::Re
         }
         if plan.manifest().quantization.is_some() {
             let ints = plan.integer_nodes();
-            let mut kernels: Vec<String> = ints.iter().map(kernel_name).collect();
+            let mut kernels: Vec<String> = ints.iter().map(|n| n.kernel.clone()).collect();
             kernels.sort();
             kernels.dedup();
             println!("integer products: {} nodes ({})", ints.len(), kernels.join(", "));
@@ -103,14 +103,4 @@ fn replay(plan: &Path, tensors: &Path, tolerance: f64, json: bool) -> anyhow::Re
     }
     anyhow::ensure!(bad.is_empty(), "{}: {} exceed the tolerance {tolerance:e}", tensors.display(), bad.join(", "));
     Ok(())
-}
-
-/// The kernel an integer node runs: tract's matrix kernel named in its description, or the
-/// runtime's convolution.
-fn kernel_name(n: &prl_runtime::NodeInfo) -> String {
-    n.info
-        .split(|c: char| !(c.is_alphanumeric() || c == '_'))
-        .find(|w| w.contains("mmm_i32"))
-        .unwrap_or(&n.op)
-        .to_string()
 }
