@@ -76,6 +76,19 @@ fn scatter<const PX: usize>(l: &Layout, acc: &[[f32; PX]; ROWS], bias: &[f32; RO
     }
 }
 
+/// Write every tile of `PX` positions held in `sums` (`[tile][row][position]`, as the SIMD
+/// paths leave them) to the output planes.
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+fn scatter_tiles<const PX: usize>(l: &Layout, sums: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
+    for (tile, sums) in sums.chunks_exact(ROWS * PX).enumerate() {
+        let mut acc = [[0f32; PX]; ROWS];
+        for (a, s) in acc.iter_mut().zip(sums.chunks_exact(PX)) {
+            a.copy_from_slice(s);
+        }
+        scatter(l, &acc, bias, tile * PX, out);
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn positions_avx2_fma(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
@@ -142,13 +155,7 @@ unsafe fn positions_avx512(l: &Layout, padded: &[f32], weights: &[f32], bias: &[
             }
         }
     }
-    for (tile, sums) in sums.chunks_exact(TILE).enumerate() {
-        let mut acc = [[0f32; MAX_PX]; ROWS];
-        for (a, s) in acc.iter_mut().zip(sums.chunks_exact(MAX_PX)) {
-            a.copy_from_slice(s);
-        }
-        scatter(l, &acc, bias, tile * MAX_PX, out);
-    }
+    scatter_tiles::<MAX_PX>(l, &sums, bias, out);
 }
 
 /// Positions per NEON tile: three 4-lane registers.
@@ -207,13 +214,7 @@ unsafe fn positions_neon(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f3
             }
         }
     }
-    for (tile, sums) in sums.chunks_exact(TILE).enumerate() {
-        let mut acc = [[0f32; NEON_PX]; ROWS];
-        for (a, s) in acc.iter_mut().zip(sums.chunks_exact(NEON_PX)) {
-            a.copy_from_slice(s);
-        }
-        scatter(l, &acc, bias, tile * NEON_PX, out);
-    }
+    scatter_tiles::<NEON_PX>(l, &sums, bias, out);
 }
 
 #[cfg(test)]
