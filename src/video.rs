@@ -62,7 +62,7 @@ pub struct VideoSource {
 }
 
 enum Reader {
-    Every { pipe: ChildStdout, next: usize, start: Instant, first: usize },
+    Every { pipe: ChildStdout, next: usize, start: Instant },
     Live { slot: Arc<(Mutex<Slot>, Condvar)> },
 }
 
@@ -73,7 +73,7 @@ struct Slot {
     ended: Option<Result<(), String>>,
 }
 
-/// FFmpeg's input options for a source: a V4L2 device for `/dev/video*`, else what FFmpeg
+/// FFmpeg's (and ffprobe's) input options for a source: a V4L2 device for `/dev/video*`, else what FFmpeg
 /// detects (files, `rtsp://`, `udp://`, `http://` ...).
 fn input_args(src: &str) -> Vec<String> {
     let mut v = vec![];
@@ -105,12 +105,11 @@ impl VideoSource {
     /// handed over, live or not.
     pub fn open(src: &str, pacing: Pacing, first: usize) -> Result<VideoSource, VideoError> {
         let err = |msg: String| VideoError { src: src.to_string(), msg };
-        let mut probe = Command::new("ffprobe");
-        probe.args(["-v", "error", "-select_streams", "v:0", "-show_entries", "stream=width,height", "-of", "csv=p=0"]);
-        if src.starts_with("/dev/video") {
-            probe.args(["-f", "v4l2"]);
-        }
-        let out = probe.arg(src).output().map_err(|e| missing_tool(src, "ffprobe", e))?;
+        let out = Command::new("ffprobe")
+            .args(["-v", "error", "-select_streams", "v:0", "-show_entries", "stream=width,height", "-of", "csv=p=0"])
+            .args(input_args(src))
+            .output()
+            .map_err(|e| missing_tool(src, "ffprobe", e))?;
         if !out.status.success() {
             return Err(err(format!("cannot open: {}", last_line(&out.stderr, "ffprobe failed"))));
         }
@@ -134,7 +133,7 @@ impl VideoSource {
         let pipe = child.stdout.take().expect("piped");
         let bytes = width * height * 3;
         let reader = match pacing {
-            Pacing::Every => Reader::Every { pipe, next: 0, start: Instant::now(), first },
+            Pacing::Every => Reader::Every { pipe, next: 0, start: Instant::now() },
             Pacing::Live => {
                 let slot = Arc::new((Mutex::new(Slot::default()), Condvar::new()));
                 let shared = Arc::clone(&slot);
@@ -159,11 +158,11 @@ impl VideoSource {
     pub fn next_frame(&mut self) -> Result<Option<VideoFrame>, VideoError> {
         let bytes = self.width * self.height * 3;
         let got = match &mut self.reader {
-            Reader::Every { pipe, next, start, first } => loop {
+            Reader::Every { pipe, next, start } => loop {
                 match read_frame(pipe, bytes) {
                     Ok(Some(buf)) => {
                         *next += 1;
-                        if *next > *first {
+                        if *next > self.first {
                             break Some((*next - 1, start.elapsed(), buf));
                         }
                     }
