@@ -1,38 +1,138 @@
 //! Decoding frames as OpenCV's `imread(IMREAD_COLOR)` does: JPEG with libjpeg-turbo's decoder
 //! (mozjpeg; other decoders differ on ~10% of pixels), everything else with `image`; grey and
 //! 16-bit images are converted to 8-bit colour.
+//!
+//! A frame's declared size is checked before its pixels are allocated ([`MAX_FRAME_PIXELS`]).
+//! A JPEG that libjpeg decodes with a warning (cut short, or with corrupt entropy data) is
+//! *damaged*: OpenCV returns such frames (the missing part grey) and so do we, with a warning
+//! naming the frame, unless the caller refuses damaged frames ([`Damaged::Refuse`]).
 
+use std::cell::RefCell;
 use std::path::Path;
 
-use prl_runtime::{Frame, PixelLayout};
+use mozjpeg_sys::jpeg_common_struct;
+use prl_runtime::Frame;
 
 use crate::InputError;
 
-/// Read and decode one frame.
+/// The most pixels a frame may declare (8192 x 8192): a header asking for more is refused before
+/// anything is allocated.
+pub const MAX_FRAME_PIXELS: u64 = 1 << 26;
+
+/// What to do with a frame the decoder could only partly read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Damaged {
+    /// Use it (as OpenCV does) and print a warning naming the frame on standard error.
+    #[default]
+    Warn,
+    /// Make it an error (`--strict`).
+    Refuse,
+}
+
+/// Read and decode one frame; a damaged one is used with a warning ([`Damaged::Warn`]).
 pub fn load_frame(path: &Path) -> Result<Frame, InputError> {
+    read_frame(path, Damaged::Warn)
+}
+
+/// Read and decode one frame, taking a damaged one as `damaged` says.
+pub fn read_frame(path: &Path, damaged: Damaged) -> Result<Frame, InputError> {
+    let (frame, damage) = decode_frame(path)?;
+    if let Some(what) = damage {
+        match damaged {
+            Damaged::Refuse => return Err(InputError::new(path, format!("damaged frame: {what}"))),
+            Damaged::Warn => eprintln!("warning: {}: damaged frame ({what}); decoded as OpenCV does", path.display()),
+        }
+    }
+    Ok(frame)
+}
+
+/// Read and decode one frame: the frame and, if the decoder had to make up part of it, what it
+/// said (libjpeg's warning, e.g. "Premature end of JPEG file").
+pub fn decode_frame(path: &Path) -> Result<(Frame, Option<String>), InputError> {
     let bad = |msg: String| InputError::new(path, msg);
     let bytes = std::fs::read(path).map_err(|e| bad(format!("cannot read frame: {e}")))?;
     if bytes.starts_with(&[0xff, 0xd8]) {
-        let (w, h, rgb) = decode_jpeg(&bytes).map_err(|m| bad(format!("bad JPEG: {m}")))?;
-        return Frame::from_raw(w, h, &rgb, PixelLayout::Rgb).map_err(|e| bad(e.to_string()));
+        let (w, h, bgr, damage) = decode_jpeg(&bytes).map_err(|m| bad(format!("bad JPEG: {m}")))?;
+        return Ok((Frame::from_bgr(w, h, bgr).map_err(|e| bad(e.to_string()))?, damage));
     }
-    let img = image::load_from_memory(&bytes).map_err(|e| bad(format!("cannot decode image: {e}")))?;
+    let mut reader = image::ImageReader::new(std::io::Cursor::new(&bytes))
+        .with_guessed_format()
+        .map_err(|e| bad(format!("cannot read frame: {e}")))?;
+    let side = MAX_FRAME_PIXELS.isqrt() as u32;
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(side);
+    limits.max_image_height = Some(side);
+    reader.limits(limits);
+    let img = reader.decode().map_err(|e| bad(format!("cannot decode image: {e}")))?;
     let rgb = img.to_rgb8();
     if rgb.width() == 0 || rgb.height() == 0 {
         return Err(bad("empty image".into()));
     }
-    Ok(Frame::from_rgb_image(&rgb))
+    Ok((Frame::from_rgb_image(&rgb), None))
 }
 
-fn decode_jpeg(bytes: &[u8]) -> Result<(usize, usize, Vec<u8>), String> {
-    // mozjpeg reports libjpeg errors by unwinding; turn them into errors.
-    std::panic::catch_unwind(|| -> Result<(usize, usize, Vec<u8>), String> {
-        let d = mozjpeg::Decompress::new_mem(bytes).map_err(|e| e.to_string())?;
-        let mut d = d.rgb().map_err(|e| e.to_string())?;
+thread_local! {
+    /// libjpeg's first warning during the decode running on this thread.
+    static JPEG_WARNING: RefCell<Option<String>> = const { RefCell::new(None) };
+}
+
+/// libjpeg's text for the message in `cinfo`.
+fn jpeg_message(cinfo: &mut jpeg_common_struct) -> String {
+    // SAFETY: `cinfo.err` is the error manager libjpeg is calling us through, set up by
+    // `jpeg_std_error`, so it is valid for the call; `format_message` writes at most
+    // JMSG_LENGTH_MAX (80) bytes, NUL included, into the buffer it is given. The crate declares
+    // the buffer `&[u8; 80]`; it is passed as a pointer to a mutable local, which is what C gets.
+    unsafe {
+        let Some(err) = cinfo.err.as_ref() else { return "libjpeg error".into() };
+        let Some(format) = err.format_message else { return format!("libjpeg message {}", err.msg_code) };
+        type Format = unsafe extern "C-unwind" fn(&mut jpeg_common_struct, *mut u8);
+        let format: Format = std::mem::transmute(format);
+        let mut buf = [0u8; 80];
+        format(cinfo, buf.as_mut_ptr());
+        let end = buf.iter().position(|&b| b == 0).unwrap_or(buf.len());
+        String::from_utf8_lossy(&buf[..end]).into_owned()
+    }
+}
+
+/// libjpeg's `emit_message`: keep the first warning (level -1), ignore trace messages.
+extern "C-unwind" fn note_warning(cinfo: &mut jpeg_common_struct, level: std::os::raw::c_int) {
+    if level < 0 {
+        let msg = jpeg_message(cinfo);
+        JPEG_WARNING.with(|w| {
+            w.borrow_mut().get_or_insert(msg);
+        });
+    }
+}
+
+/// libjpeg's `error_exit`: unwind to `decode_jpeg` with the message (mozjpeg-sys is built with
+/// unwinding, so libjpeg's frames are unwound through).
+extern "C-unwind" fn fail(cinfo: &mut jpeg_common_struct) {
+    std::panic::resume_unwind(Box::new(jpeg_message(cinfo)));
+}
+
+/// Decode a JPEG to BGR as OpenCV does: width, height, pixels and libjpeg's warning, if any.
+fn decode_jpeg(bytes: &[u8]) -> Result<(usize, usize, Vec<u8>, Option<String>), String> {
+    JPEG_WARNING.with(|w| w.borrow_mut().take());
+    // SAFETY: an all-zero `jpeg_error_mgr` is a valid value of the plain C struct (null function
+    // pointers, zero counters), and `jpeg_std_error` then fills in libjpeg's defaults.
+    let mut err: mozjpeg_sys::jpeg_error_mgr = unsafe { std::mem::zeroed() };
+    // SAFETY: `err` is a valid, exclusively borrowed error manager.
+    unsafe { mozjpeg_sys::jpeg_std_error(&mut err) };
+    err.error_exit = Some(fail);
+    err.emit_message = Some(note_warning);
+    let decoded = std::panic::catch_unwind(move || -> Result<(usize, usize, Vec<u8>), String> {
+        let d = mozjpeg::Decompress::builder().with_err(err).from_mem(bytes).map_err(|e| e.to_string())?;
         let (w, h) = (d.width(), d.height());
-        let px: Vec<[u8; 3]> = d.read_scanlines().map_err(|e| e.to_string())?;
+        if w == 0 || h == 0 || (w as u64) * (h as u64) > MAX_FRAME_PIXELS {
+            return Err(format!("declares {w}x{h} pixels (at most {MAX_FRAME_PIXELS} are read)"));
+        }
+        let mut d = d.to_colorspace(mozjpeg::ColorSpace::JCS_EXT_BGR).map_err(|e| e.to_string())?;
+        let px = d.read_scanlines::<u8>().map_err(|e| e.to_string())?;
         d.finish().map_err(|e| e.to_string())?;
-        Ok((w, h, px.into_iter().flatten().collect()))
+        Ok((w, h, px))
     })
-    .unwrap_or_else(|p| Err(p.downcast_ref::<String>().cloned().unwrap_or_else(|| "decoder failure".into())))
+    .unwrap_or_else(|p| Err(p.downcast_ref::<String>().cloned().unwrap_or_else(|| "decoder failure".into())));
+    let warning = JPEG_WARNING.with(|w| w.borrow_mut().take());
+    let (w, h, px) = decoded?;
+    Ok((w, h, px, warning))
 }

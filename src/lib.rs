@@ -14,6 +14,6 @@ pub mod video;
 
 pub use calibration::{calibration_crops, CalibrationSpec, POSITION_JITTER, SCALE_JITTER};
 pub use dataset::{detect, Dataset, Format, Video, UAV123_ATTRIBUTES};
-pub use frames::load_frame;
+pub use frames::{decode_frame, load_frame, read_frame, Damaged, MAX_FRAME_PIXELS};
 pub use metrics::iou;
 pub use sequence::{init_box_from_groundtruth, parse_box, parse_boxes, InputError, Sequence};

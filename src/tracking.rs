@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use prl_runtime::{BBox, Frame, Tracker};
 
-use crate::{iou, load_frame, InputError};
+use crate::{iou, load_frame, read_frame, Damaged, InputError};
 
 /// Where one frame's time went.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -102,6 +102,27 @@ impl Frames for &[std::path::PathBuf] {
     }
     fn label(&self, i: usize) -> String {
         self[i].display().to_string()
+    }
+}
+
+/// Frame files, with a rule for damaged ones (a truncated JPEG, say: used with a warning, or an
+/// error with [`Damaged::Refuse`]).
+pub struct FrameFiles<'a> {
+    /// The files, in order.
+    pub paths: &'a [std::path::PathBuf],
+    /// What to do with a frame the decoder could only partly read.
+    pub damaged: Damaged,
+}
+
+impl Frames for FrameFiles<'_> {
+    fn len(&self) -> usize {
+        self.paths.len()
+    }
+    fn frame(&mut self, i: usize) -> Result<Frame, InputError> {
+        read_frame(&self.paths[i], self.damaged)
+    }
+    fn label(&self, i: usize) -> String {
+        self.paths[i].display().to_string()
     }
 }
 

@@ -69,7 +69,11 @@ fn bad_track_inputs_are_one_line_errors() {
         assert!(err.lines().count() == 1 && err.starts_with("error: ") && err.contains(needle), "{args:?}: {err}");
     };
     check(&["track", "--plan", plan, "--frames", d, "--init", "400,300,10,10"], "outside");
-    check(&["track", "--plan", plan, "--frames", d, "--init", "10,10,0,5"], "positive size");
+    check(&["track", "--plan", plan, "--frames", d, "--init", "10,10,0,5"], "must be positive");
+    check(&["track", "--plan", plan, "--frames", d, "--init", "10,10,nan,5"], "must be finite");
+    // A box far larger than the frame: refused before any crop is allocated, quoted as typed.
+    check(&["track", "--plan", plan, "--frames", d, "--init", "0,0,1e7,1e7"], "--init 0,0,1e7,1e7: is larger than the");
+    check(&["track", "--plan", plan, "--frames", d, "--init", "-5e299,0,1e300,20"], "--init -5e299,0,1e300,20");
     check(&["track", "--plan", plan, "--frames", d, "--init", "10,10,0.1,0.1"], "too small");
     // Malformed arguments are clap's usage errors (exit 2, with its hint line).
     let o = prl(&["track", "--plan", plan, "--frames", d, "--init", "10,10,5"]);
@@ -86,6 +90,46 @@ fn bad_track_inputs_are_one_line_errors() {
     std::fs::remove_file(dir.path().join("000004.png")).unwrap();
     std::fs::write(dir.path().join("000004.jpg"), b"\xff\xd8\xff\xe0 not really a jpeg").unwrap();
     check(&["track", "--plan", plan, "--frames", d, "--init", "110,108,36,24"], "000004.jpg");
+}
+
+/// A JPEG cut short decodes (the lost part grey, as OpenCV gives it) with a warning naming it;
+/// `--strict` makes it an error.
+#[test]
+fn damaged_jpeg_frames_warn_or_fail_with_strict() {
+    let plan = common::reference_plan();
+    let dir = tempfile::tempdir().unwrap();
+    for i in 1..=3 {
+        drift_frame(i).save(dir.path().join(format!("{i:06}.jpg"))).unwrap();
+    }
+    let cut = dir.path().join("000002.jpg");
+    let bytes = std::fs::read(&cut).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
+    let (frame, damage) = prl_track::decode_frame(&cut).unwrap();
+    assert!(damage.as_deref().is_some_and(|d| d.contains("Premature end")), "{damage:?}");
+    assert!(frame.bgr().iter().any(|&b| b != 128), "a grey frame");
+    let whole = dir.path().join("000001.jpg");
+    assert_eq!(prl_track::decode_frame(&whole).unwrap().1, None);
+
+    let args = |strict: bool| {
+        let mut a = vec!["track", "--plan", plan.to_str().unwrap(), "--frames", dir.path().to_str().unwrap()];
+        a.extend(["--init", "110.5,108.5,36,24", "--threads", "1"]);
+        if strict {
+            a.push("--strict");
+        }
+        a.into_iter().map(str::to_string).collect::<Vec<_>>()
+    };
+    let run = |strict| prl(&args(strict).iter().map(String::as_str).collect::<Vec<_>>());
+    let o = run(false);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let warnings: Vec<&str> =
+        std::str::from_utf8(&o.stderr).unwrap().lines().filter(|l| l.starts_with("warning")).collect();
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(warnings[0].contains("000002.jpg") && warnings[0].contains("damaged frame"), "{}", warnings[0]);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("frames: 3"));
+    let o = run(true);
+    assert!(!o.status.success());
+    let err = stderr(&o);
+    assert!(err.lines().count() == 1 && err.contains("000002.jpg: damaged frame: Premature end"), "{err}");
 }
 
 #[test]

@@ -42,22 +42,31 @@ impl Cropper {
     }
 
     /// The template crop for a target in `bbox` (x, y, w, h) on `frame`, cut as the official
-    /// `init` cuts it. Boxes with no finite position, no positive size, or outside the frame are
-    /// errors.
+    /// `init` cuts it. A box with no finite position, no positive size, outside the frame or
+    /// larger than the frame is an [`Error::InitBox`]: the last rule bounds every crop of the
+    /// track (the loop clips the size to the frame after each step) to about 3.1 times the
+    /// frame's longer side, so no box can ask for an unbounded allocation.
     pub fn template(&self, frame: &Frame, bbox: BBox) -> Result<TemplateCrop> {
+        let refuse = |problem: String| Err(Error::InitBox { bbox, problem });
         let ok = |v: f64| v.is_finite();
-        if !(ok(bbox.x) && ok(bbox.y) && ok(bbox.w) && ok(bbox.h)) || bbox.w <= 0.0 || bbox.h <= 0.0 {
-            return Err(Error::Input(format!("init box {bbox:?} must have a finite position and a positive size")));
+        if !(ok(bbox.x) && ok(bbox.y) && ok(bbox.w) && ok(bbox.h)) {
+            return refuse("every number must be finite".into());
+        }
+        if bbox.w <= 0.0 || bbox.h <= 0.0 {
+            return refuse("its width and height must be positive".into());
         }
         let (fw, fh) = (frame.width() as f64, frame.height() as f64);
         if bbox.x + bbox.w <= 0.0 || bbox.y + bbox.h <= 0.0 || bbox.x >= fw || bbox.y >= fh {
-            return Err(Error::Input(format!("init box {bbox:?} lies outside the {fw}x{fh} frame")));
+            return refuse(format!("lies outside the {fw}x{fh} frame"));
+        }
+        if bbox.w > fw || bbox.h > fh {
+            return refuse(format!("is larger than the {fw}x{fh} frame"));
         }
         let center = (bbox.x + (bbox.w - 1.0) / 2.0, bbox.y + (bbox.h - 1.0) / 2.0);
         let size = (bbox.w, bbox.h);
         let context = self.context_size(size);
         if context < 1.0 {
-            return Err(Error::Input(format!("init box {bbox:?} is too small: its context crop is under one pixel")));
+            return refuse("is too small: its context crop is under one pixel".into());
         }
         let s_z = round_half_even(context);
         let channel_average = frame.channel_mean();

@@ -23,6 +23,15 @@ pub enum Error {
     /// A frame or box handed to the tracker is unusable.
     #[error("{0}")]
     Input(String),
+    /// The box `init` was given cannot start a track on its frame. The box is printed plainly
+    /// (`x,y,w,h`); a caller that knows how the user wrote it reports `problem` with that text.
+    #[error("init box {bbox}: {problem}")]
+    InitBox {
+        /// The box as the tracker received it.
+        bbox: crate::BBox,
+        /// What is wrong with it, e.g. "is larger than the 1280x720 frame".
+        problem: String,
+    },
 }
 
 /// The runtime's result type.

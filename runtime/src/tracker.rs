@@ -20,6 +20,13 @@ pub struct BBox {
     pub h: f64,
 }
 
+impl std::fmt::Display for BBox {
+    /// `x,y,w,h`, each number in its shortest exact form (as `--init` takes it).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{},{},{},{}", self.x, self.y, self.w, self.h)
+    }
+}
+
 /// What the tracker says about a frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Prediction {

@@ -7,7 +7,7 @@ use anyhow::Context;
 use clap::Args;
 use prl_runtime::{set_threads, BBox, Frame, Plan, Tracker};
 use prl_track::tracking::{self, Frames, TrackRun};
-use prl_track::{init_box_from_groundtruth, InputError, Sequence};
+use prl_track::{init_box_from_groundtruth, Damaged, InputError, Sequence};
 
 use super::write_atomically;
 
@@ -43,7 +43,7 @@ pub struct TrackArgs {
     jsonl: bool,
     /// Initial box `x,y,w,h` in the first frame (0-based pixels).
     #[arg(long, value_name = "X,Y,W,H", value_parser = parse_init, allow_hyphen_values = true)]
-    init: Option<[f64; 4]>,
+    init: Option<InitArg>,
     /// Write one `x,y,w,h` line per frame here (pysot format; first line the init box); with
     /// --live, `frame,x,y,w,h` lines (the frame number first: frames were dropped).
     #[arg(long, value_name = "FILE")]
@@ -57,13 +57,40 @@ pub struct TrackArgs {
     /// Track only the first N frames.
     #[arg(long, value_name = "N")]
     max_frames: Option<usize>,
+    /// Stop at a damaged frame (a truncated or corrupt JPEG) instead of tracking it with a
+    /// warning, as OpenCV would decode it.
+    #[arg(long)]
+    strict: bool,
     /// Write the run's summary (FPS, stage medians, mean IoU, peak memory) here as JSON.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
 }
 
-fn parse_init(s: &str) -> Result<[f64; 4], String> {
-    prl_track::parse_box(s)
+/// `--init` as parsed and as typed (errors quote the box the way the user wrote it).
+#[derive(Clone)]
+struct InitArg {
+    b: [f64; 4],
+    text: String,
+}
+
+impl InitArg {
+    fn bbox(&self) -> BBox {
+        BBox { x: self.b[0], y: self.b[1], w: self.b[2], h: self.b[3] }
+    }
+}
+
+fn parse_init(s: &str) -> Result<InitArg, String> {
+    Ok(InitArg { b: prl_track::parse_box(s)?, text: s.trim().to_string() })
+}
+
+/// A run's error, with a refused init box quoted as `source` gave it (`--init 0,0,1e7,1e7`).
+fn quote_init(e: tracking::TrackError, source: &str) -> anyhow::Error {
+    match e {
+        tracking::TrackError::Tracker { label, source: prl_runtime::Error::InitBox { problem, .. } } => {
+            anyhow::anyhow!("{source}: {problem} (on {label})")
+        }
+        e => e.into(),
+    }
 }
 
 /// Per-stage times of a run and how the boxes compare with ground truth (`--json` writes it).
@@ -122,7 +149,7 @@ pub fn track_with_progress(
     frames: impl Frames,
     init: BBox,
     mut on_frame: impl FnMut(usize, &Frame, &BBox) -> anyhow::Result<()>,
-) -> anyhow::Result<TrackRun> {
+) -> Result<TrackRun, tracking::TrackError> {
     let pb = indicatif::ProgressBar::new(frames.len() as u64);
     pb.set_style(
         indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
@@ -133,7 +160,7 @@ pub fn track_with_progress(
         on_frame(i, f, b).map_err(|e| format!("{e:#}"))
     });
     pb.finish_and_clear();
-    Ok(run?)
+    run
 }
 
 /// A copy of the frame with `pred` drawn (green).
@@ -179,20 +206,25 @@ fn draw_rect(img: &mut image::RgbImage, b: [f64; 4], color: [u8; 3]) {
 
 pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     set_threads(a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())));
-    if let (Some(src), Some(b)) = (&a.video, a.init) {
-        return run_video(&a, src, BBox { x: b[0], y: b[1], w: b[2], h: b[3] });
+    if let (Some(src), Some(b)) = (&a.video, &a.init) {
+        return run_video(&a, src, b);
     }
-    let (mut frames, gt, init) = match (&a.sequence, &a.frames, a.init) {
+    let typed = |b: &InitArg| format!("--init {}", b.text);
+    let (mut frames, gt, init, init_source) = match (&a.sequence, &a.frames, &a.init) {
         (Some(dir), _, init) => {
             let seq = Sequence::open(dir)?;
-            let init = match (init, &seq.groundtruth) {
-                (Some(b), _) => BBox { x: b[0], y: b[1], w: b[2], h: b[3] },
-                (None, Some(gt)) => init_box_from_groundtruth(gt[0]),
+            let (init, source) = match (init, &seq.groundtruth) {
+                (Some(b), _) => (b.bbox(), typed(b)),
+                (None, Some(gt)) => {
+                    let [x, y, w, h] = gt[0];
+                    let file = dir.join("groundtruth_rect.txt");
+                    (init_box_from_groundtruth(gt[0]), format!("{} line 1 ({x},{y},{w},{h})", file.display()))
+                }
                 (None, None) => return Err(InputError::new(dir, "no groundtruth_rect.txt: give --init x,y,w,h").into()),
             };
-            (seq.frames, seq.groundtruth, init)
+            (seq.frames, seq.groundtruth, init, source)
         }
-        (None, Some(dir), Some(b)) => (Sequence::list_frames(dir)?, None, BBox { x: b[0], y: b[1], w: b[2], h: b[3] }),
+        (None, Some(dir), Some(b)) => (Sequence::list_frames(dir)?, None, b.bbox(), typed(b)),
         _ => anyhow::bail!("give --sequence DIR, or --frames DIR with --init x,y,w,h"),
     };
     if let Some(n) = a.max_frames {
@@ -202,10 +234,13 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
     let mut tracker = open_tracker(&a.plan, |line| println!("{line}"))?;
-    let run = track_with_progress(&mut tracker, frames.as_slice(), init, |i, f, b| match &a.vis {
+    let damaged = if a.strict { Damaged::Refuse } else { Damaged::Warn };
+    let files = tracking::FrameFiles { paths: &frames, damaged };
+    let run = track_with_progress(&mut tracker, files, init, |i, f, b| match &a.vis {
         Some(dir) => save_vis(dir, i, f, b, gt.as_ref().and_then(|g| g.get(i).copied())),
         None => Ok(()),
-    })?;
+    })
+    .map_err(|e| quote_init(e, &init_source))?;
     if let Some(path) = &a.results {
         write_atomically(path, run.results_text().as_bytes())?;
         println!("results: {}", path.display());
@@ -239,7 +274,7 @@ fn open_tracker(dir: &Path, say: impl Fn(String)) -> anyhow::Result<Tracker> {
 }
 
 /// `prl track --video SRC`: decode with FFmpeg and track every frame (or the newest, `--live`).
-fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
+fn run_video(a: &TrackArgs, src: &str, init_arg: &InitArg) -> anyhow::Result<()> {
     use prl_track::video::{Pacing, VideoSource};
     use std::cell::RefCell;
     // With --jsonl, standard output carries the per-frame objects only.
@@ -260,7 +295,7 @@ fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
     let stamps: RefCell<Vec<(usize, f64)>> = RefCell::new(vec![]);
     let limit = a.max_frames.unwrap_or(usize::MAX).max(1);
     let frames = VideoFrames { video: &mut video, src, stamps: &stamps, limit };
-    let run = tracking::track_stream(&mut tracker, frames, init, 0, |i, f, b, score| {
+    let run = tracking::track_stream(&mut tracker, frames, init_arg.bbox(), 0, |i, f, b, score| {
         let (index, time) = stamps.borrow()[i];
         if a.jsonl {
             let o = serde_json::json!({ "frame": index, "time_s": time, "box": [b.x, b.y, b.w, b.h], "score": score });
@@ -273,7 +308,8 @@ fn run_video(a: &TrackArgs, src: &str, init: BBox) -> anyhow::Result<()> {
             Some(dir) => save_vis(dir, index, f, b, None).map_err(|e| format!("{e:#}")),
             None => Ok(()),
         }
-    })?;
+    })
+    .map_err(|e| quote_init(e, &format!("--init {}", init_arg.text)))?;
     if let Some(wr) = writer {
         wr.finish()?;
         say(format!("video with boxes: {}", a.vis_video.as_ref().expect("set with the writer").display()));
