@@ -15,7 +15,7 @@ use crate::{Error, Result, Tensor};
 pub use pickle::{parse as parse_pickle, PickleError, Value as PickleValue};
 
 /// Element type of a tensor as stored in the checkpoint.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum DType {
     /// IEEE binary32.
     F32,

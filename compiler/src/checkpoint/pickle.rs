@@ -1,51 +1,187 @@
 //! A safe pickle interpreter: it rebuilds the data a `torch.save` state dict holds and never
 //! executes anything. Globals are names, not code: the few a state dict needs are recognised by
 //! the torch reader; every other global stays an opaque value.
+//!
+//! Hostile streams are bounded: values are shared, not copied (`DUP` and memo `GET` cost O(1)),
+//! dict keys are hashed, the work spent copying containers is capped by the stream's length,
+//! and nesting of any depth is dropped without recursion, so time and memory are linear in the
+//! stream and nothing overflows the stack.
 
 use std::cell::RefCell;
+use std::collections::HashMap;
 use std::rc::Rc;
 
 /// A shared, mutable container (pickle containers are references, mutated after memoisation).
 pub type Shared<T> = Rc<RefCell<T>>;
 
-/// A value rebuilt from a pickle stream.
-#[derive(Debug, Clone)]
+/// A value rebuilt from a pickle stream. Cloning is cheap: every payload is shared.
+#[derive(Clone)]
 pub enum Value {
     None,
     Bool(bool),
     Int(i64),
     Float(f64),
-    Str(String),
-    Bytes(Vec<u8>),
-    Tuple(Vec<Value>),
+    Str(Rc<str>),
+    Bytes(Rc<[u8]>),
+    Tuple(Rc<[Value]>),
     List(Shared<Vec<Value>>),
-    Dict(Shared<Vec<(Value, Value)>>),
+    Dict(Shared<Dict>),
     /// A reference to a global (`module.name`), never resolved to code.
-    Global(String, String),
+    Global(Rc<str>, Rc<str>),
     /// `callee(*args)` recorded, not performed (REDUCE, NEWOBJ); `state` from BUILD.
-    Call {
-        callee: Box<Value>,
-        args: Box<Value>,
-        state: Option<Box<Value>>,
-    },
+    Call(Rc<Call>),
     /// A persistent id (`BINPERSID`): torch uses it for storages.
-    Persistent(Box<Value>),
+    Persistent(Rc<Value>),
+}
+
+/// A call recorded, never made.
+#[derive(Clone)]
+pub struct Call {
+    /// What would be called.
+    pub callee: Value,
+    /// Its arguments (a tuple, usually).
+    pub args: Value,
+    /// What `BUILD` would have set on the result.
+    pub state: Option<Value>,
+}
+
+/// A dict: items in insertion order, string and integer keys hashed (Python semantics: a
+/// repeated key replaces the earlier value in place).
+#[derive(Clone, Default)]
+pub struct Dict {
+    items: Vec<(Value, Value)>,
+    index: HashMap<Key, usize>,
+}
+
+#[derive(Clone, PartialEq, Eq, Hash)]
+enum Key {
+    Str(Rc<str>),
+    Int(i64),
+}
+
+impl Dict {
+    fn insert(&mut self, k: Value, v: Value) {
+        let key = match &k {
+            Value::Str(s) => Some(Key::Str(s.clone())),
+            Value::Int(i) => Some(Key::Int(*i)),
+            _ => None,
+        };
+        match key {
+            Some(key) => match self.index.get(&key) {
+                Some(&at) => self.items[at].1 = v,
+                None => {
+                    self.index.insert(key, self.items.len());
+                    self.items.push((k, v));
+                }
+            },
+            None => self.items.push((k, v)),
+        }
+    }
+
+    /// The items, in insertion order.
+    pub fn items(&self) -> &[(Value, Value)] {
+        &self.items
+    }
+}
+
+impl std::fmt::Debug for Value {
+    /// Shallow: the kind, and the global a value comes from (values may be cyclic).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self, self.global_name()) {
+            (Value::Int(i), _) => write!(f, "Int({i})"),
+            (Value::Str(s), _) => write!(f, "Str({s:?})"),
+            (v, Some(g)) => write!(f, "{}({g})", v.kind()),
+            (v, None) => f.write_str(v.kind()),
+        }
+    }
+}
+
+impl Drop for Value {
+    /// Iterative: a value nested a million deep is freed without a million stack frames.
+    fn drop(&mut self) {
+        let mut pending = Vec::new();
+        self.take_children(&mut pending);
+        while let Some(mut v) = pending.pop() {
+            v.take_children(&mut pending);
+        }
+    }
 }
 
 impl Value {
+    /// Move out the children this value alone owns (shared ones stay with their other owners).
+    fn take_children(&mut self, out: &mut Vec<Value>) {
+        let take = |v: &mut Value| std::mem::replace(v, Value::None);
+        match self {
+            Value::Tuple(t) => {
+                if let Some(items) = Rc::get_mut(t) {
+                    out.extend(items.iter_mut().map(take));
+                }
+            }
+            Value::List(l) => {
+                if let Some(items) = Rc::get_mut(l) {
+                    out.append(items.get_mut());
+                }
+            }
+            Value::Dict(d) => {
+                if let Some(d) = Rc::get_mut(d) {
+                    let d = d.get_mut();
+                    d.index.clear();
+                    for (k, v) in d.items.drain(..) {
+                        out.push(k);
+                        out.push(v);
+                    }
+                }
+            }
+            Value::Call(c) => {
+                if let Some(c) = Rc::get_mut(c) {
+                    out.push(take(&mut c.callee));
+                    out.push(take(&mut c.args));
+                    out.extend(c.state.take());
+                }
+            }
+            Value::Persistent(p) => {
+                if let Some(p) = Rc::get_mut(p) {
+                    out.push(take(p));
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// What kind of value this is, for messages.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Value::None => "None",
+            Value::Bool(_) => "bool",
+            Value::Int(_) => "int",
+            Value::Float(_) => "float",
+            Value::Str(_) => "str",
+            Value::Bytes(_) => "bytes",
+            Value::Tuple(_) => "tuple",
+            Value::List(_) => "list",
+            Value::Dict(_) => "dict",
+            Value::Global(..) => "global",
+            Value::Call(_) => "object",
+            Value::Persistent(_) => "persistent",
+        }
+    }
+
     /// The first global this value was made from, if any (for error messages).
     pub fn global_name(&self) -> Option<String> {
-        match self {
-            Value::Global(m, n) => Some(format!("{m}.{n}")),
-            Value::Call { callee, .. } => callee.global_name(),
-            _ => None,
+        let mut v = self;
+        loop {
+            match v {
+                Value::Global(m, n) => return Some(format!("{m}.{n}")),
+                Value::Call(c) => v = &c.callee,
+                _ => return None,
+            }
         }
     }
 
     /// The entries of a dict value.
     pub fn dict_items(&self) -> Option<Vec<(Value, Value)>> {
         match self {
-            Value::Dict(d) => Some(d.borrow().clone()),
+            Value::Dict(d) => Some(d.borrow().items.clone()),
             _ => None,
         }
     }
@@ -70,7 +206,7 @@ impl Value {
     /// The items of a tuple or list.
     pub fn items(&self) -> Option<Vec<Value>> {
         match self {
-            Value::Tuple(t) => Some(t.clone()),
+            Value::Tuple(t) => Some(t.to_vec()),
             Value::List(l) => Some(l.borrow().clone()),
             _ => None,
         }
@@ -120,19 +256,25 @@ impl<'a> Reader<'a> {
         self.pos += n + 1;
         Ok(s)
     }
-    fn string(&mut self, n: usize) -> Result<String, PickleError> {
+    fn string(&mut self, n: usize) -> Result<Rc<str>, PickleError> {
         let at = self.pos;
         let bytes = self.take(n)?;
-        String::from_utf8(bytes.to_vec()).map_err(|_| PickleError::Malformed { at, what: "invalid UTF-8" })
+        std::str::from_utf8(bytes).map(Rc::from).map_err(|_| PickleError::Malformed { at, what: "invalid UTF-8" })
     }
 }
+
+/// Longest chain of values [`parse`] callers walk (a parameter wrapping a tensor wrapping...).
+pub const MAX_WALK_DEPTH: usize = 16;
 
 /// Interpret a pickle stream (protocols 0-5, without out-of-band buffers) into a [`Value`].
 pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
     let mut r = Reader { buf, pos: 0 };
     let mut stack: Vec<Value> = Vec::new();
     let mut marks: Vec<usize> = Vec::new();
-    let mut memo: std::collections::HashMap<u64, Value> = Default::default();
+    let mut memo: HashMap<u64, Value> = Default::default();
+    // Items copied out of containers (BUILD on a dict, OrderedDict(...)): at most a few times
+    // the stream's length, so that re-using one large container cannot make parsing quadratic.
+    let mut budget = buf.len().saturating_mul(4).saturating_add(1 << 16);
     loop {
         let at = r.pos;
         let op = r.u8()?;
@@ -151,6 +293,13 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
                 stack.split_off(m)
             }};
         }
+        macro_rules! spend {
+            ($n:expr) => {
+                budget = budget.checked_sub($n).ok_or(bad("too many items copied between containers"))?
+            };
+        }
+        let bytes = |b: &[u8]| Value::Bytes(Rc::from(b));
+        let line_str = |l: String| Value::Str(Rc::from(l));
         match op {
             0x80 => {
                 r.u8()?;
@@ -214,50 +363,42 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
                 stack.push(Value::Str(r.string(n)?))
             }
             0x8d => {
-                let n = r.u64()? as usize;
+                let n = usize::try_from(r.u64()?).map_err(|_| PickleError::Truncated(buf.len()))?;
                 stack.push(Value::Str(r.string(n)?))
             }
-            b'V' => stack.push(Value::Str(r.line()?)),
-            b'S' => stack.push(Value::Str(r.line()?.trim_matches(|c| c == '\'' || c == '"').to_string())),
-            b'U' => {
+            b'V' => stack.push(line_str(r.line()?)),
+            b'S' => stack.push(line_str(r.line()?.trim_matches(|c| c == '\'' || c == '"').to_string())),
+            b'U' | b'C' => {
                 let n = r.u8()? as usize;
-                stack.push(Value::Bytes(r.take(n)?.to_vec()))
+                stack.push(bytes(r.take(n)?))
             }
-            b'T' => {
+            b'T' | b'B' => {
                 let n = r.u32()? as usize;
-                stack.push(Value::Bytes(r.take(n)?.to_vec()))
-            }
-            b'C' => {
-                let n = r.u8()? as usize;
-                stack.push(Value::Bytes(r.take(n)?.to_vec()))
-            }
-            b'B' => {
-                let n = r.u32()? as usize;
-                stack.push(Value::Bytes(r.take(n)?.to_vec()))
+                stack.push(bytes(r.take(n)?))
             }
             0x8e | 0x96 => {
-                let n = r.u64()? as usize;
-                stack.push(Value::Bytes(r.take(n)?.to_vec()))
+                let n = usize::try_from(r.u64()?).map_err(|_| PickleError::Truncated(buf.len()))?;
+                stack.push(bytes(r.take(n)?))
             }
-            b')' => stack.push(Value::Tuple(vec![])),
+            b')' => stack.push(Value::Tuple(Rc::from([]))),
             b't' => {
                 let items = pop_mark!();
-                stack.push(Value::Tuple(items))
+                stack.push(Value::Tuple(Rc::from(items)))
             }
             0x85 => {
                 let a = pop!();
-                stack.push(Value::Tuple(vec![a]))
+                stack.push(Value::Tuple(Rc::from([a])))
             }
             0x86 => {
                 let b = pop!();
                 let a = pop!();
-                stack.push(Value::Tuple(vec![a, b]))
+                stack.push(Value::Tuple(Rc::from([a, b])))
             }
             0x87 => {
                 let c = pop!();
                 let b = pop!();
                 let a = pop!();
-                stack.push(Value::Tuple(vec![a, b, c]))
+                stack.push(Value::Tuple(Rc::from([a, b, c])))
             }
             b']' => stack.push(Value::List(Default::default())),
             b'l' => {
@@ -267,7 +408,11 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
             b'}' => stack.push(Value::Dict(Default::default())),
             b'd' => {
                 let items = pop_mark!();
-                stack.push(Value::Dict(Rc::new(RefCell::new(pairs(items).ok_or(bad("odd dict items"))?))))
+                let mut d = Dict::default();
+                for (k, v) in pairs(items).ok_or(bad("odd dict items"))? {
+                    d.insert(k, v);
+                }
+                stack.push(Value::Dict(Rc::new(RefCell::new(d))))
             }
             0x8f => stack.push(Value::List(Default::default())), // EMPTY_SET: kept as a list
             0x90 | 0x91 => {
@@ -299,44 +444,49 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
             b'c' => {
                 let m = r.line()?;
                 let n = r.line()?;
-                stack.push(Value::Global(m, n))
+                stack.push(Value::Global(Rc::from(m), Rc::from(n)))
             }
             0x93 => {
                 let n = pop!();
                 let m = pop!();
-                match (m, n) {
-                    (Value::Str(m), Value::Str(n)) => stack.push(Value::Global(m, n)),
+                match (&m, &n) {
+                    (Value::Str(m), Value::Str(n)) => stack.push(Value::Global(m.clone(), n.clone())),
                     _ => return Err(bad("STACK_GLOBAL needs two strings")),
                 }
             }
             b'R' | 0x81 => {
                 let args = pop!();
                 let callee = pop!();
+                let copied = ordered_dict_size(&callee, &args);
+                spend!(copied);
                 stack.push(call(callee, args))
             }
             0x92 => {
                 let _kwargs = pop!();
                 let args = pop!();
                 let callee = pop!();
-                stack.push(Value::Call { callee: Box::new(callee), args: Box::new(args), state: None })
+                stack.push(Value::Call(Rc::new(Call { callee, args, state: None })))
             }
             b'b' => {
                 let state = pop!();
                 match stack.last_mut().ok_or(bad("BUILD on empty stack"))? {
+                    // `dict.__setstate__` is `update`; setting attributes on any other value
+                    // is never done.
                     Value::Dict(d) => {
                         if let Some(items) = state.dict_items() {
-                            d.borrow_mut().extend(items)
+                            spend!(items.len());
+                            set_items(Some(&Value::Dict(d.clone())), items);
                         }
                     }
-                    Value::Call { state: s, .. } => *s = Some(Box::new(state)),
+                    Value::Call(c) => Rc::make_mut(c).state = Some(state),
                     _ => {}
                 }
             }
             b'Q' => {
                 let pid = pop!();
-                stack.push(Value::Persistent(Box::new(pid)))
+                stack.push(Value::Persistent(Rc::new(pid)))
             }
-            b'P' => stack.push(Value::Persistent(Box::new(Value::Str(r.line()?)))),
+            b'P' => stack.push(Value::Persistent(Rc::new(line_str(r.line()?)))),
             b'q' => {
                 let k = r.u8()? as u64;
                 memo.insert(k, stack.last().ok_or(bad("PUT on empty stack"))?.clone());
@@ -370,19 +520,33 @@ pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
     }
 }
 
+fn is_ordered_dict(callee: &Value) -> bool {
+    matches!(callee, Value::Global(m, n) if &**m == "collections" && &**n == "OrderedDict")
+}
+
+/// How many items `call(callee, args)` copies (an `OrderedDict` of a list of pairs).
+fn ordered_dict_size(callee: &Value, args: &Value) -> usize {
+    if !is_ordered_dict(callee) {
+        return 0;
+    }
+    args.items().and_then(|a| a.first().and_then(|v| v.items())).map_or(0, |v| v.len())
+}
+
 /// Record a call. `collections.OrderedDict(...)` is the one call performed: it only makes a dict.
 fn call(callee: Value, args: Value) -> Value {
-    if let Value::Global(m, n) = &callee {
-        if m == "collections" && n == "OrderedDict" {
-            let items = args.items().and_then(|a| a.first().and_then(|v| v.items()));
-            let pairs = items.unwrap_or_default().into_iter().filter_map(|p| match p {
-                Value::Tuple(kv) if kv.len() == 2 => Some((kv[0].clone(), kv[1].clone())),
-                _ => None,
-            });
-            return Value::Dict(Rc::new(RefCell::new(pairs.collect())));
+    if is_ordered_dict(&callee) {
+        let items = args.items().and_then(|a| a.first().and_then(|v| v.items()));
+        let mut d = Dict::default();
+        for p in items.unwrap_or_default() {
+            if let Value::Tuple(kv) = &p {
+                if let [k, v] = &kv[..] {
+                    d.insert(k.clone(), v.clone());
+                }
+            }
         }
+        return Value::Dict(Rc::new(RefCell::new(d)));
     }
-    Value::Call { callee: Box::new(callee), args: Box::new(args), state: None }
+    Value::Call(Rc::new(Call { callee, args, state: None }))
 }
 
 fn pairs(items: Vec<Value>) -> Option<Vec<(Value, Value)>> {
@@ -404,7 +568,7 @@ fn extend(target: Option<&Value>, items: Vec<Value>) -> Option<()> {
             Some(())
         }
         // Appending to an opaque object (a list subclass): keep it opaque.
-        Value::Call { .. } => Some(()),
+        Value::Call(_) => Some(()),
         _ => None,
     }
 }
@@ -412,27 +576,15 @@ fn extend(target: Option<&Value>, items: Vec<Value>) -> Option<()> {
 fn set_items(target: Option<&Value>, items: Vec<(Value, Value)>) -> Option<()> {
     match target? {
         Value::Dict(d) => {
-            let mut d = d.borrow_mut();
+            // `d[k] = v` on a dict that holds itself is still one borrow at a time.
+            let mut d = d.try_borrow_mut().ok()?;
             for (k, v) in items {
-                // Python dict semantics: a repeated key replaces the earlier value.
-                if let Some(slot) = d.iter_mut().find(|(ek, _)| same_key(ek, &k)) {
-                    slot.1 = v;
-                } else {
-                    d.push((k, v));
-                }
+                d.insert(k, v);
             }
             Some(())
         }
         // Items set on an opaque object (a dict subclass): it stays opaque.
-        Value::Call { .. } => Some(()),
+        Value::Call(_) => Some(()),
         _ => None,
-    }
-}
-
-fn same_key(a: &Value, b: &Value) -> bool {
-    match (a, b) {
-        (Value::Str(a), Value::Str(b)) => a == b,
-        (Value::Int(a), Value::Int(b)) => a == b,
-        _ => false,
     }
 }

@@ -1,9 +1,16 @@
 //! PyTorch zip archives as `torch.save` writes them: `<dir>/data.pkl` plus one raw little-endian
 //! file per storage under `<dir>/data/<key>`.
+//!
+//! Every size is checked before it is used: a member is read only up to its declared length and
+//! the archive's length, element counts, offsets and strides are overflow-checked against their
+//! storage, and the tensors of one checkpoint hold at most [`MAX_ELEMENTS`] values in all (a
+//! stride-0 view may expand a tiny storage, but not without bound). Archives that name a member
+//! twice are refused: which copy a reader takes differs between readers.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::io::{Cursor, Read};
 use std::path::Path;
+use std::rc::Rc;
 
 use super::pickle::{self, Value};
 use super::{DType, Entry};
@@ -11,10 +18,21 @@ use crate::{Error, Result, Tensor};
 
 type Archive<'a> = zip::ZipArchive<Cursor<&'a [u8]>>;
 
+/// The most values the tensors of one checkpoint may hold in all (512 MiB as f32).
+pub const MAX_ELEMENTS: usize = 1 << 27;
+
 pub(super) fn read(path: &Path, bytes: &[u8]) -> Result<BTreeMap<String, Entry>> {
     let bad = |msg: String| Error::format(path, msg);
     let mut zip =
         zip::ZipArchive::new(Cursor::new(bytes)).map_err(|e| bad(format!("corrupt or truncated zip archive: {e}")))?;
+    if let Some(declared) = declared_members(bytes) {
+        if declared != zip.len() {
+            return Err(bad(format!(
+                "zip archive lists {declared} members but {} distinct names: a member appears twice",
+                zip.len()
+            )));
+        }
+    }
     let pkl_name = zip
         .file_names()
         .filter(|n| n.ends_with("data.pkl") && n.matches('/').count() <= 1)
@@ -33,11 +51,13 @@ pub(super) fn read(path: &Path, bytes: &[u8]) -> Result<BTreeMap<String, Entry>>
         bad(format!("{pkl_name}: not a state dict (a dict of tensors, or a dict with a `state_dict` entry)"))
     })?;
     let mut out = BTreeMap::new();
+    let mut budget = Budget { left: MAX_ELEMENTS, storages: HashMap::new() };
     for (k, v) in state {
         let Some(key) = k.as_str() else { continue };
-        let entry = match rebuild(&v) {
+        let entry = match rebuild(&v, 0) {
             Ok(spec) => {
-                let tensor = spec.materialise(&mut zip, &dir).map_err(|m| bad(format!("tensor `{key}`: {m}")))?;
+                let tensor =
+                    spec.materialise(&mut zip, &dir, &mut budget).map_err(|m| bad(format!("tensor `{key}`: {m}")))?;
                 Entry::Tensor { dtype: spec.dtype, tensor }
             }
             Err(what) => Entry::Other(what),
@@ -60,11 +80,37 @@ fn state_dict(root: &Value) -> Option<Vec<(Value, Value)>> {
     Some(items)
 }
 
+/// The member count the archive's end-of-central-directory record declares (`None` for zip64
+/// archives, whose count is elsewhere, or when the record is not found).
+fn declared_members(bytes: &[u8]) -> Option<usize> {
+    // The record is 22 bytes plus a comment of at most 65535.
+    let from = bytes.len().saturating_sub(22 + 65535);
+    let at = (from..=bytes.len().checked_sub(22)?).rev().find(|&i| bytes[i..].starts_with(b"PK\x05\x06"))?;
+    let n = u16::from_le_bytes([bytes[at + 10], bytes[at + 11]]);
+    (n != 0xffff).then_some(n as usize)
+}
+
+/// A member's bytes, read up to its declared length (checked by its CRC) and never reserving
+/// more than the archive's own length up front.
 fn read_entry(zip: &mut Archive, name: &str) -> std::result::Result<Vec<u8>, String> {
-    let mut f = zip.by_name(name).map_err(|e| e.to_string())?;
-    let mut buf = Vec::with_capacity(f.size() as usize);
-    f.read_to_end(&mut buf).map_err(|e| format!("cannot read: {e}"))?;
+    let archive_len = zip.clone().into_inner().into_inner().len() as u64;
+    let f = zip.by_name(name).map_err(|e| e.to_string())?;
+    let declared = f.size();
+    let mut buf = Vec::with_capacity(declared.min(archive_len) as usize);
+    // One byte past the declared length: the reader then reaches the member's end, where it
+    // checks the CRC.
+    f.take(declared.saturating_add(1)).read_to_end(&mut buf).map_err(|e| format!("cannot read: {e}"))?;
+    if buf.len() as u64 != declared {
+        return Err(format!("holds {} bytes, its header says {declared}", buf.len()));
+    }
     Ok(buf)
+}
+
+/// What the tensors read so far have used: values left to hold, and the storages decoded (each
+/// is read once, however many tensors view it).
+struct Budget {
+    left: usize,
+    storages: HashMap<(String, DType), Rc<Vec<f32>>>,
 }
 
 /// What `_rebuild_tensor_v2(storage, offset, size, stride, ...)` describes.
@@ -78,15 +124,18 @@ struct TensorSpec {
 }
 
 /// Recognise a tensor; otherwise describe what the value is (naming any global it comes from).
-fn rebuild(v: &Value) -> std::result::Result<TensorSpec, String> {
-    let Value::Call { callee, args, .. } = v else {
-        return Err(format!("a plain {} value", kind(v)));
+fn rebuild(v: &Value, depth: usize) -> std::result::Result<TensorSpec, String> {
+    let Value::Call(c) = v else {
+        return Err(format!("a plain {} value", v.kind()));
     };
-    let callee_name = callee.global_name().unwrap_or_default();
-    let args = args.items().unwrap_or_default();
+    if depth > pickle::MAX_WALK_DEPTH {
+        return Err("parameters nested too deep".into());
+    }
+    let callee_name = c.callee.global_name().unwrap_or_default();
+    let args = c.args.items().unwrap_or_default();
     match callee_name.as_str() {
         "torch._utils._rebuild_parameter" | "torch._utils._rebuild_parameter_with_state" => {
-            rebuild(args.first().ok_or("a parameter without data")?)
+            rebuild(args.first().ok_or("a parameter without data")?, depth + 1)
         }
         "torch._utils._rebuild_tensor_v2" | "torch._utils._rebuild_tensor" => {
             let [storage, offset, size, stride, ..] = args.as_slice() else {
@@ -104,7 +153,7 @@ fn rebuild(v: &Value) -> std::result::Result<TensorSpec, String> {
             }
             Ok(TensorSpec { dtype, key, numel, offset, size, stride })
         }
-        "" => Err(format!("made by calling a {} value", kind(callee))),
+        "" => Err(format!("made by calling a {} value", c.callee.kind())),
         other => Err(format!("built by `{other}`, which is never called")),
     }
 }
@@ -113,11 +162,13 @@ fn storage_of(v: &Value) -> std::result::Result<(DType, String, usize), String> 
     let Value::Persistent(pid) = v else {
         return Err(match v.global_name() {
             Some(g) => format!("its storage is built by `{g}`, which is never called"),
-            None => format!("its storage is a {} value", kind(v)),
+            None => format!("its storage is a {} value", v.kind()),
         });
     };
     let items = pid.items().ok_or("a malformed storage record")?;
-    let [tag, ty, key, _location, numel] = items.as_slice() else { return Err("a malformed storage record".into()) };
+    let [tag, ty, key, _location, numel] = items.as_slice() else {
+        return Err("a malformed storage record".into());
+    };
     if tag.as_str() != Some("storage") {
         return Err("an unknown persistent record".into());
     }
@@ -137,56 +188,69 @@ fn storage_of(v: &Value) -> std::result::Result<(DType, String, usize), String> 
 }
 
 impl TensorSpec {
-    fn materialise(&self, zip: &mut Archive, dir: &str) -> std::result::Result<Tensor, String> {
-        let name = format!("{dir}data/{}", self.key);
-        let raw = read_entry(zip, &name).map_err(|e| format!("storage {name}: {e}"))?;
-        let es = self.dtype.size();
-        if raw.len() < self.numel * es {
-            return Err(format!("storage {name} holds {} bytes, {} expected (truncated?)", raw.len(), self.numel * es));
-        }
-        let n: usize = self.size.iter().product();
+    /// The tensor, gathered from its storage (read once per checkpoint, into `budget`).
+    fn materialise(&self, zip: &mut Archive, dir: &str, budget: &mut Budget) -> std::result::Result<Tensor, String> {
+        let left = &mut budget.left;
+        let what = || format!("size {:?} / stride {:?} / offset {}", self.size, self.stride, self.offset);
+        let n = self.size.iter().try_fold(1usize, |n, &s| n.checked_mul(s));
+        let n = n.filter(|&n| n <= *left).ok_or_else(|| {
+            format!("{} asks for more values than a checkpoint may hold ({MAX_ELEMENTS} in all)", what())
+        })?;
+        *left -= n;
         if n == 0 {
             return Ok(Tensor::new(self.size.clone(), vec![]));
         }
-        let last = self.offset + self.size.iter().zip(&self.stride).map(|(s, t)| (s - 1) * t).sum::<usize>();
-        if last >= self.numel {
+        // The last element's position; every other one is smaller.
+        let last = self
+            .size
+            .iter()
+            .zip(&self.stride)
+            .try_fold(self.offset, |at, (&s, &t)| at.checked_add((s - 1).checked_mul(t)?));
+        if last.is_none_or(|l| l >= self.numel) {
+            return Err(format!("{} reaches past its storage of {} elements", what(), self.numel));
+        }
+        let name = format!("{dir}data/{}", self.key);
+        let storage = match budget.storages.get(&(name.clone(), self.dtype)) {
+            Some(s) => s.clone(),
+            None => {
+                let raw = read_entry(zip, &name).map_err(|e| format!("storage {name}: {e}"))?;
+                let s = Rc::new(self.dtype.decode(&raw));
+                budget.storages.insert((name.clone(), self.dtype), s.clone());
+                s
+            }
+        };
+        // The storage record's element count against what the member holds.
+        if self.numel > storage.len() {
             return Err(format!(
-                "size {:?} / stride {:?} / offset {} reach past its storage of {} elements",
-                self.size, self.stride, self.offset, self.numel
+                "storage {name} holds {} elements of {} bytes, {} expected (truncated?)",
+                storage.len(),
+                self.dtype.size(),
+                self.numel
             ));
         }
-        let storage = self.dtype.decode(&raw[..self.numel * es]);
-        // Gather in row-major order, honouring arbitrary strides.
+        // Gather in row-major order, honouring arbitrary strides, a row of the last dimension
+        // at a time.
+        let (outer, (row, step)) = match (self.size.split_last(), self.stride.last()) {
+            (Some((&row, outer)), Some(&step)) => (outer, (row, step)),
+            _ => (&[][..], (1, 1)),
+        };
         let mut data = Vec::with_capacity(n);
-        let mut idx = vec![0usize; self.size.len()];
-        for _ in 0..n {
+        let mut idx = vec![0usize; outer.len()];
+        while data.len() < n {
             let at = self.offset + idx.iter().zip(&self.stride).map(|(i, s)| i * s).sum::<usize>();
-            data.push(storage[at]);
+            match step {
+                1 => data.extend_from_slice(&storage[at..at + row]),
+                0 => data.resize(data.len() + row, storage[at]),
+                _ => data.extend((0..row).map(|k| storage[at + k * step])),
+            }
             for d in (0..idx.len()).rev() {
                 idx[d] += 1;
-                if idx[d] < self.size[d] {
+                if idx[d] < outer[d] {
                     break;
                 }
                 idx[d] = 0;
             }
         }
         Ok(Tensor::new(self.size.clone(), data))
-    }
-}
-
-fn kind(v: &Value) -> &'static str {
-    match v {
-        Value::None => "None",
-        Value::Bool(_) => "bool",
-        Value::Int(_) => "int",
-        Value::Float(_) => "float",
-        Value::Str(_) => "str",
-        Value::Bytes(_) => "bytes",
-        Value::Tuple(_) => "tuple",
-        Value::List(_) => "list",
-        Value::Dict(_) => "dict",
-        Value::Global(..) => "global",
-        Value::Call { .. } => "object",
-        Value::Persistent(_) => "persistent",
     }
 }
