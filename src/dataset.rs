@@ -237,6 +237,12 @@ fn json_file(root: &Path) -> Result<Option<PathBuf>, InputError> {
 fn pysot_json(root: &Path) -> Result<Dataset, InputError> {
     let path = json_file(root)?.ok_or_else(|| err(root, "no .json file"))?;
     let text = std::fs::read_to_string(&path).map_err(|e| err(&path, format!("cannot read: {e}")))?;
+    parse_pysot_json(root, &path, &text)
+}
+
+/// A pysot dataset JSON (`{video: {img_names, gt_rect, init_rect, attr}}`) already read from
+/// `path`, its frames relative to `root`.
+pub fn parse_pysot_json(root: &Path, path: &Path, text: &str) -> Result<Dataset, InputError> {
     // Python's json writes NaN for absent targets; JSON has no NaN.
     let text = text.replace("NaN", "null");
     let doc: BTreeMap<String, serde_json::Value> =

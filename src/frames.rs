@@ -49,13 +49,18 @@ pub fn read_frame(path: &Path, damaged: Damaged) -> Result<Frame, InputError> {
 /// Read and decode one frame: the frame and, if the decoder had to make up part of it, what it
 /// said (libjpeg's warning, e.g. "Premature end of JPEG file").
 pub fn decode_frame(path: &Path) -> Result<(Frame, Option<String>), InputError> {
+    let bytes = std::fs::read(path).map_err(|e| InputError::new(path, format!("cannot read frame: {e}")))?;
+    decode_frame_bytes(path, &bytes)
+}
+
+/// [`decode_frame`] on bytes already read; `path` names them in errors.
+pub fn decode_frame_bytes(path: &Path, bytes: &[u8]) -> Result<(Frame, Option<String>), InputError> {
     let bad = |msg: String| InputError::new(path, msg);
-    let bytes = std::fs::read(path).map_err(|e| bad(format!("cannot read frame: {e}")))?;
     if bytes.starts_with(&[0xff, 0xd8]) {
-        let (w, h, bgr, damage) = decode_jpeg(&bytes).map_err(|m| bad(format!("bad JPEG: {m}")))?;
+        let (w, h, bgr, damage) = decode_jpeg(bytes).map_err(|m| bad(format!("bad JPEG: {m}")))?;
         return Ok((Frame::from_bgr(w, h, bgr).map_err(|e| bad(e.to_string()))?, damage));
     }
-    let mut reader = image::ImageReader::new(std::io::Cursor::new(&bytes))
+    let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|e| bad(format!("cannot read frame: {e}")))?;
     let side = MAX_FRAME_PIXELS.isqrt() as u32;

@@ -13,7 +13,7 @@ pub mod tracking;
 pub mod video;
 
 pub use calibration::{calibration_crops, CalibrationSpec, POSITION_JITTER, SCALE_JITTER};
-pub use dataset::{detect, Dataset, Format, Video, UAV123_ATTRIBUTES};
-pub use frames::{decode_frame, load_frame, read_frame, Damaged, MAX_FRAME_PIXELS};
+pub use dataset::{detect, parse_pysot_json, Dataset, Format, Video, UAV123_ATTRIBUTES};
+pub use frames::{decode_frame, decode_frame_bytes, load_frame, read_frame, Damaged, MAX_FRAME_PIXELS};
 pub use metrics::iou;
-pub use sequence::{init_box_from_groundtruth, parse_box, parse_boxes, InputError, Sequence};
+pub use sequence::{init_box_from_groundtruth, parse_box, parse_boxes, parse_boxes_text, InputError, Sequence};

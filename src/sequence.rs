@@ -41,7 +41,7 @@ impl Sequence {
     pub fn open(dir: &Path) -> Result<Sequence, InputError> {
         let img = dir.join("img");
         let frames = Self::list_frames(if img.is_dir() { &img } else { dir })?;
-        let gt_path = ["groundtruth_rect.txt", "groundtruth.txt"].iter().map(|n| dir.join(n)).find(|p| p.is_file());
+        let gt_path = Self::groundtruth_file(dir);
         let groundtruth = match gt_path {
             Some(p) => {
                 let gt = parse_boxes(&p)?;
@@ -55,6 +55,11 @@ impl Sequence {
         let name =
             dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
         Ok(Sequence { name, frames, groundtruth })
+    }
+
+    /// The ground-truth file of the sequence folder `dir`, if it has one.
+    pub fn groundtruth_file(dir: &Path) -> Option<PathBuf> {
+        ["groundtruth_rect.txt", "groundtruth.txt"].iter().map(|n| dir.join(n)).find(|p| p.is_file())
     }
 
     /// The image files of a folder, sorted by name.
@@ -81,6 +86,11 @@ impl Sequence {
 /// the file and line.
 pub fn parse_boxes(path: &Path) -> Result<Vec<[f64; 4]>, InputError> {
     let text = std::fs::read_to_string(path).map_err(|e| InputError::new(path, format!("cannot read: {e}")))?;
+    parse_boxes_text(path, &text)
+}
+
+/// [`parse_boxes`] on text already read; `path` names it in errors.
+pub fn parse_boxes_text(path: &Path, text: &str) -> Result<Vec<[f64; 4]>, InputError> {
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate() {
         if line.trim().is_empty() {

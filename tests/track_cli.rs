@@ -74,6 +74,13 @@ fn bad_track_inputs_are_one_line_errors() {
     // A box far larger than the frame: refused before any crop is allocated, quoted as typed.
     check(&["track", "--plan", plan, "--frames", d, "--init", "0,0,1e7,1e7"], "--init 0,0,1e7,1e7: is larger than the");
     check(&["track", "--plan", plan, "--frames", d, "--init", "-5e299,0,1e300,20"], "--init -5e299,0,1e300,20");
+    // From a sequence's ground truth: the file's line, as written.
+    let seq = tempfile::tempdir().unwrap();
+    std::fs::create_dir(seq.path().join("img")).unwrap();
+    frames_dir(&seq.path().join("img"));
+    std::fs::write(seq.path().join("groundtruth_rect.txt"), "\n0,0,2e4,1e1\n1,1,1,1\n1,1,1,1\n").unwrap();
+    let s = seq.path().to_str().unwrap();
+    check(&["track", "--plan", plan, "--sequence", s], "groundtruth_rect.txt line 2 (0,0,2e4,1e1): is larger than");
     check(&["track", "--plan", plan, "--frames", d, "--init", "10,10,0.1,0.1"], "too small");
     // Malformed arguments are clap's usage errors (exit 2, with its hint line).
     let o = prl(&["track", "--plan", plan, "--frames", d, "--init", "10,10,5"]);

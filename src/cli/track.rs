@@ -83,6 +83,19 @@ fn parse_init(s: &str) -> Result<InitArg, String> {
     Ok(InitArg { b: prl_track::parse_box(s)?, text: s.trim().to_string() })
 }
 
+/// Where a sequence's first ground-truth box comes from, quoted as its file has it
+/// (`.../groundtruth_rect.txt line 1 (1e9,0,5,5)`).
+fn first_box_as_written(dir: &Path, parsed: [f64; 4]) -> String {
+    let file = Sequence::groundtruth_file(dir);
+    let line = file.as_ref().and_then(|f| std::fs::read_to_string(f).ok()).and_then(|t| {
+        t.lines().enumerate().find(|(_, l)| !l.trim().is_empty()).map(|(i, l)| (i + 1, l.trim().to_string()))
+    });
+    match (file, line) {
+        (Some(f), Some((n, l))) => format!("{} line {n} ({l})", f.display()),
+        _ => format!("the first ground-truth box ({},{},{},{})", parsed[0], parsed[1], parsed[2], parsed[3]),
+    }
+}
+
 /// A run's error, with a refused init box quoted as `source` gave it (`--init 0,0,1e7,1e7`).
 fn quote_init(e: tracking::TrackError, source: &str) -> anyhow::Error {
     match e {
@@ -215,11 +228,7 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
             let seq = Sequence::open(dir)?;
             let (init, source) = match (init, &seq.groundtruth) {
                 (Some(b), _) => (b.bbox(), typed(b)),
-                (None, Some(gt)) => {
-                    let [x, y, w, h] = gt[0];
-                    let file = dir.join("groundtruth_rect.txt");
-                    (init_box_from_groundtruth(gt[0]), format!("{} line 1 ({x},{y},{w},{h})", file.display()))
-                }
+                (None, Some(gt)) => (init_box_from_groundtruth(gt[0]), first_box_as_written(dir, gt[0])),
                 (None, None) => return Err(InputError::new(dir, "no groundtruth_rect.txt: give --init x,y,w,h").into()),
             };
             (seq.frames, seq.groundtruth, init, source)

@@ -1,0 +1,64 @@
+#!/usr/bin/env bash
+# Fuzz every parser of files a user or a model supplies (cargo fuzz / libFuzzer, see fuzz/).
+#
+#   bash scripts/fuzz.sh [SECONDS] [TARGET...]     # default: 60 s for each of the targets
+#
+# Installs cargo-fuzz if missing (from crates.io; a stable toolchain: targets are built with
+# `--sanitizer none`, and fuzz/src/lib.rs caps single allocations at 1 GiB), seeds each corpus
+# from ../shared (fuzz/seeds.py; the plan target's seed plan is a NanoTrack fp32 plan compiled
+# here), runs each target for SECONDS with a 1 s hang limit and a 2 GiB memory limit, and
+# prints one line per target: executions, executions per second, corpus size and findings.
+# Findings (crash, timeout, out-of-memory inputs) are in fuzz/artifacts/<target>/; the exit
+# status is non-zero when there are any. Corpora grow in target/fuzz-corpus/ across runs.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+seconds=${1:-60}
+shift || true
+all=(checkpoint pickle plan onnx_import boxes pysot_json frame)
+targets=("$@")
+[ ${#targets[@]} -eq 0 ] && targets=("${all[@]}")
+shared=${PRL_SHARED:-$(cd .. && pwd)/shared}
+work=target/fuzz-work
+corpus=target/fuzz-corpus
+mkdir -p "$work" "$corpus"
+
+command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz --locked
+command -v ffmpeg >/dev/null || { apt-get update -qq && apt-get install -y -qq ffmpeg >/dev/null; }
+
+# The seed plan: NanoTrack v2 imported from the shipped files and compiled (fp32).
+plan=${PRL_FUZZ_PLAN:-$work/nanotrack-plan}
+if [ ! -f "$plan/plan.json" ]; then
+    cargo build -q --bin prl
+    target/debug/prl import nanotrack --out "$work/nanotrack-model" >/dev/null
+    target/debug/prl compile --model "$work/nanotrack-model" --out "$plan" >/dev/null
+fi
+plan=$(cd "$plan" && pwd)
+if [ ! -f "$work/seeds.done" ]; then
+    rm -rf "$work/seeds"
+    python3 fuzz/seeds.py "$shared" "$work/seeds" "$plan"
+    touch "$work/seeds.done"
+fi
+
+cargo fuzz build -s none
+
+status=0
+printf '%-12s %8s %12s %10s %8s %s\n' target seconds executions "exec/s" corpus findings
+for t in "${targets[@]}"; do
+    mkdir -p "$corpus/$t" "fuzz/artifacts/$t"
+    cp -n "$work/seeds/$t"/* "$corpus/$t/" 2>/dev/null || true
+    before=$(ls "fuzz/artifacts/$t" | wc -l)
+    log="$work/$t.log"
+    PRL_FUZZ_PLAN="$plan" PRL_SHARED="$shared" cargo fuzz run -s none "$t" "$corpus/$t" -- \
+        -max_total_time="$seconds" -timeout=1 -rss_limit_mb=2048 -print_final_stats=1 \
+        -artifact_prefix="fuzz/artifacts/$t/" >"$log" 2>&1 || true
+    runs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$log" | grep -o '[0-9]*$' | tail -1)
+    runs=${runs:-0}
+    found=$(( $(ls "fuzz/artifacts/$t" | wc -l) - before ))
+    if [ "$found" -gt 0 ] || ! grep -q 'stat::number_of_executed_units' "$log"; then
+        status=1
+        grep -E 'panicked|ERROR|SUMMARY|Test unit written|allocation over' "$log" | head -5 >&2 || tail -20 "$log" >&2
+    fi
+    printf '%-12s %8s %12s %10s %8s %s\n' "$t" "$seconds" "$runs" "$((runs / seconds))" \
+        "$(ls "$corpus/$t" | wc -l)" "$found"
+done
+exit $status
