@@ -9,6 +9,7 @@ mod frames;
 mod metrics;
 pub mod ope;
 mod sequence;
+pub mod soak;
 pub mod tracking;
 pub mod video;
 

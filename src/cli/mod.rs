@@ -11,6 +11,7 @@ mod import;
 mod plots;
 mod quantize;
 mod run_benchmark;
+mod soak;
 mod track;
 mod verify;
 
@@ -52,6 +53,8 @@ enum Command {
     Eval(eval::EvalArgs),
     /// Compare plans (e.g. fp32 and int8): latency, output fidelity, tracking agreement, memory.
     Compare(compare::CompareArgs),
+    /// Track a looped sequence for a long time: memory, open files and frame time must stay flat.
+    Soak(soak::SoakArgs),
     /// Show the whole pipeline working with no input: seeded network, plan, generated video.
     Demo(demo::DemoArgs),
 }
@@ -88,6 +91,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Compile(a) => compile::run(a),
         Command::Track(a) => track::run(a),
         Command::Demo(a) => demo::run(a),
+        Command::Soak(a) => soak::run(a),
         Command::Eval(a) => eval::run(a),
         Command::RunBenchmark(a) => run_benchmark::run(a),
         Command::Bench(a) => bench::run(a),
