@@ -10,21 +10,13 @@ fn a_short_soak_holds_and_reports_every_sample() {
     let plan = common::nanotrack_plan(dir.path());
     let json = dir.path().join("soak.json");
     let seq = common::sequence("building4");
-    let o = common::prl(&[
-        "soak",
-        "--plan",
-        plan.to_str().unwrap(),
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--frames",
-        "2400",
-        "--every",
-        "100",
-        "--warm-up",
-        "1200",
-        "--json",
-        json.to_str().unwrap(),
-    ]);
+    let (plan, seq) = (plan.to_str().unwrap(), seq.to_str().unwrap());
+    let soak = |more: &[&str]| {
+        let mut args = vec!["soak", "--plan", plan, "--sequence", seq];
+        args.extend(more);
+        common::prl(&args)
+    };
+    let o = soak(&["--frames", "2400", "--every", "100", "--warm-up", "1200", "--json", json.to_str().unwrap()]);
     let out = common::ok(&o);
     assert!(out.contains("soak holds"), "{out}");
     let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
@@ -35,18 +27,7 @@ fn a_short_soak_holds_and_reports_every_sample() {
     assert_eq!(doc["report"]["warm"], 12);
     assert!(samples.iter().all(|s| s["rss_mb"].as_f64().unwrap() > 1.0 && s["fds"].as_u64().unwrap() >= 3));
     // A tolerance no run can meet fails, with a one-line error.
-    let o = common::prl(&[
-        "soak",
-        "--plan",
-        plan.to_str().unwrap(),
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--frames",
-        "300",
-        "--every",
-        "20",
-        "--rss-tolerance=-1",
-    ]);
+    let o = soak(&["--frames", "300", "--every", "20", "--rss-tolerance=-1"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.trim().lines().count() == 1 && err.contains("soak failed"), "{err}");
 }
