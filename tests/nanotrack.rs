@@ -79,6 +79,14 @@ fn import_errors_name_the_file_and_the_problem() {
     std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
     let e = import_err(&cut, &head, None);
     assert!(e.starts_with(&cut.display().to_string()) && e.contains("not an ONNX model"), "{e}");
+    // A graph output no node makes (fuzzing found tract-onnx panicking on it): one line.
+    let orphan = tmp.path().join("orphan.onnx");
+    let mut bytes = std::fs::read(&head).unwrap();
+    let at = bytes.windows(7).rposition(|w| w == b"output1").unwrap();
+    bytes[at + 5] = b'X';
+    std::fs::write(&orphan, &bytes).unwrap();
+    let e = import_err(&backbone, &orphan, None);
+    assert!(e.starts_with(&orphan.display().to_string()) && e.contains("made by no node"), "{e}");
     // Not a file at all.
     let e = import_err(&tmp.path().join("absent.onnx"), &head, None);
     assert!(e.contains("absent.onnx"), "{e}");

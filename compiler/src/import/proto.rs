@@ -56,6 +56,14 @@ impl Onnx {
         if let Some(n) = g.node.iter().find(|n| n.attribute.iter().any(|a| a.g.is_some() || !a.graphs.is_empty())) {
             return Err(graph_err(&path, format!("node `{}` ({}) holds a subgraph; not supported", n.name, n.op_type)));
         }
+        // Every graph output must be a value the graph makes (tract indexes them unchecked).
+        let made: HashSet<&str> = (g.node.iter().flat_map(|n| n.output.iter().map(String::as_str)))
+            .chain(g.input.iter().map(|v| v.name.as_str()))
+            .chain(g.initializer.iter().map(|t| t.name.as_str()))
+            .collect();
+        if let Some(o) = g.output.iter().find(|o| !made.contains(o.name.as_str())) {
+            return Err(graph_err(&path, format!("graph output `{}` is made by no node", o.name)));
+        }
         Ok(Onnx { path, model })
     }
 
@@ -191,8 +199,14 @@ impl Onnx {
         let err = |e: tract_onnx::prelude::TractError| {
             graph_err(file, format!("tract cannot run it {what}: {}", format!("{e:#}").replace('\n', " ")))
         };
-        let model = tract_onnx::onnx().model_for_proto_model(&self.model).map_err(err)?;
-        let model = model.into_typed().map_err(err)?;
+        // tract's ONNX translation can panic on malformed graphs it does not check (found by
+        // fuzzing): a panic is an error naming the file, not an abort.
+        let typed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            tract_onnx::onnx().model_for_proto_model(&self.model).and_then(|m| m.into_typed())
+        }));
+        let model =
+            typed.map_err(|_| graph_err(file, format!("tract cannot read it {what}: its graph is malformed")))?;
+        let model = model.map_err(err)?;
         model
             .output_outlets()
             .map_err(err)?
