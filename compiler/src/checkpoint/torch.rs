@@ -1,9 +1,9 @@
 //! PyTorch zip archives as `torch.save` writes them: `<dir>/data.pkl` plus one raw little-endian
 //! file per storage under `<dir>/data/<key>`.
 //!
-//! Every size is checked before it is used: a member is read only up to its declared length and
-//! the archive's length, element counts, offsets and strides are overflow-checked against their
-//! storage, and the tensors of one checkpoint hold at most [`MAX_ELEMENTS`] values in all (a
+//! Every size is checked before it is used: a member is read only up to its declared length
+//! (nothing reserved from it), element counts, offsets and strides are overflow-checked against
+//! their storage, and the tensors of one checkpoint hold at most [`MAX_ELEMENTS`] values in all (a
 //! stride-0 view may expand a tiny storage, but not without bound). Archives that name a member
 //! twice are refused: which copy a reader takes differs between readers.
 
@@ -90,13 +90,12 @@ fn declared_members(bytes: &[u8]) -> Option<usize> {
     (n != 0xffff).then_some(n as usize)
 }
 
-/// A member's bytes, read up to its declared length (checked by its CRC) and never reserving
-/// more than the archive's own length up front.
+/// A member's bytes, read up to its declared length (checked by its CRC); nothing is reserved
+/// from the declared length, the buffer grows with the bytes that are really there.
 fn read_entry(zip: &mut Archive, name: &str) -> std::result::Result<Vec<u8>, String> {
-    let archive_len = zip.clone().into_inner().into_inner().len() as u64;
     let f = zip.by_name(name).map_err(|e| e.to_string())?;
     let declared = f.size();
-    let mut buf = Vec::with_capacity(declared.min(archive_len) as usize);
+    let mut buf = Vec::new();
     // One byte past the declared length: the reader then reaches the member's end, where it
     // checks the CRC.
     f.take(declared.saturating_add(1)).read_to_end(&mut buf).map_err(|e| format!("cannot read: {e}"))?;
