@@ -298,6 +298,7 @@ impl VideoWriter {
         let src = path.display().to_string();
         let err = |msg: String| VideoError { src: src.clone(), msg };
         let name = path.file_name().ok_or_else(|| err("not a file path".into()))?.to_string_lossy().into_owned();
+        // The temporary keeps the extension: FFmpeg picks the container from it.
         let tmp = path.with_file_name(format!(".tmp-{}-{name}", std::process::id()));
         let mut child = Command::new("ffmpeg")
             .args(["-hide_banner", "-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "bgr24", "-s"])
@@ -329,7 +330,13 @@ impl VideoWriter {
         let src = self.path.display().to_string();
         drop(self.stdin.take());
         wait_for(&mut self.child, &src)?;
-        std::fs::rename(&self.tmp, &self.path).map_err(|e| VideoError { src, msg: format!("cannot write: {e}") })
+        prl_runtime::commit(&self.tmp, &self.path).map_err(|e| VideoError {
+            src,
+            msg: match e {
+                prl_runtime::Error::Io { err, .. } => format!("cannot write: {err}"),
+                other => other.to_string(),
+            },
+        })
     }
 }
 

@@ -198,23 +198,11 @@ pub(crate) fn write_graph_dir(
     graphs: [(&str, &[u8]); 2],
 ) -> Result<()> {
     let json = serde_json::to_vec_pretty(manifest).map_err(|e| Error::Other(e.to_string()))?;
-    write_all_atomically(dir, &[graphs[0], graphs[1], (manifest_name, &json)])
-}
-
-/// Write every file to a temporary beside it, then rename them all: a failure leaves no
-/// half-written file under its final name.
-pub(crate) fn write_all_atomically(dir: &Path, files: &[(&str, &[u8])]) -> Result<()> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    let tmp = |name: &str| dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let written: Result<()> = files
-        .iter()
-        .try_for_each(|(name, bytes)| std::fs::write(tmp(name), bytes).map_err(|e| Error::io(dir.join(name), e)));
-    if let Err(e) = written {
-        files.iter().for_each(|(name, _)| drop(std::fs::remove_file(tmp(name))));
-        return Err(e);
-    }
-    for (name, _) in files {
-        std::fs::rename(tmp(name), dir.join(name)).map_err(|e| Error::io(dir.join(name), e))?;
-    }
-    Ok(())
+    // Committed by the manifest: a reader finds the old directory, no manifest, or the new one.
+    prl_runtime::write_files_atomically(dir, &[graphs[0], graphs[1], (manifest_name, &json)], manifest_name).map_err(
+        |e| match e {
+            prl_runtime::Error::Io { path, err } => Error::Io { path, err },
+            other => Error::Other(other.to_string()),
+        },
+    )
 }

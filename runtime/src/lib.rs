@@ -18,6 +18,7 @@
 //! # Ok(()) }
 //! ```
 
+mod atomic;
 mod config;
 mod crop;
 mod cropper;
@@ -34,6 +35,7 @@ mod recording;
 mod resize;
 mod tracker;
 
+pub use atomic::{commit, temporary_path, write_atomically, write_files_atomically};
 pub use config::{Family, TrackerConfig};
 pub use crop::{crop_to_tensor, get_subwindow};
 pub use cropper::{Cropper, TemplateCrop};

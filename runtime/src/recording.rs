@@ -16,19 +16,19 @@ pub const RECORDING_INDEX: &str = "tensors.json";
 
 /// Run `plan` on the exemplar crop `z` and the search crop `x` (float NCHW, as
 /// [`Plan::template`] and [`Plan::search`] take them) and write every input and output to `dir`
-/// (created if absent; each file written through a temporary file and a rename).
+/// (created if absent; the files through temporaries, committed by `tensors.json`: see
+/// [`crate::write_files_atomically`]).
 pub fn record(dir: &Path, plan: &Plan, z: &[f32], x: &[f32]) -> Result<()> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::Io { path: dir.to_path_buf(), err: e })?;
     let m = plan.manifest();
     let zf = plan.template(z)?;
     let out = plan.search(x, &zf)?;
     let mut index = BTreeMap::new();
+    let mut files: Vec<(String, Vec<u8>)> = vec![];
     let mut put = |t: &TensorInfo, data: &[f32]| -> Result<()> {
         if t.shape.iter().product::<usize>() != data.len() {
             return Err(Error::Input(format!("{}: shape {:?} does not fit {} values", t.name, t.shape, data.len())));
         }
-        let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
-        write_atomically(&dir.join(format!("{}.f32", t.name)), &bytes)?;
+        files.push((format!("{}.f32", t.name), data.iter().flat_map(|v| v.to_le_bytes()).collect()));
         index.insert(t.name.clone(), t.shape.clone());
         Ok(())
     };
@@ -40,8 +40,9 @@ pub fn record(dir: &Path, plan: &Plan, z: &[f32], x: &[f32]) -> Result<()> {
     for (t, v) in m.search.outputs.iter().zip(&out.outputs) {
         put(t, v)?;
     }
-    let json = serde_json::to_vec_pretty(&index).expect("a map of shapes serialises");
-    write_atomically(&dir.join(RECORDING_INDEX), &json)
+    files.push((RECORDING_INDEX.to_string(), serde_json::to_vec_pretty(&index).expect("a map of shapes serialises")));
+    let files: Vec<(&str, &[u8])> = files.iter().map(|(n, b)| (n.as_str(), b.as_slice())).collect();
+    crate::write_files_atomically(dir, &files, RECORDING_INDEX)
 }
 
 /// How one output of a replay compares with the recorded one.
@@ -127,16 +128,4 @@ fn compare(graph: &'static str, name: &str, ours: &[f32], theirs: &[f32]) -> Ten
     }
     let rel = if norm > 0.0 { (diff / norm).sqrt() } else { diff.sqrt() };
     TensorMatch { graph, name: name.to_string(), max_abs, rel }
-}
-
-/// Write `bytes` to `path` through a temporary file in the same folder and a rename.
-fn write_atomically(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |err| Error::Io { path: path.to_path_buf(), err };
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let tmp = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
-    std::fs::write(&tmp, bytes).map_err(io)?;
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        io(e)
-    })
 }

@@ -151,16 +151,12 @@ pub fn progress_bar(len: u64, msg: &str) -> indicatif::ProgressBar {
     pb
 }
 
-/// Write `bytes` to `path` through a temporary file in the same folder and a rename.
+/// Write `bytes` to `path` whole or not at all ([`prl_runtime::write_atomically`]: a flushed
+/// temporary beside it, renamed into place).
 pub fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> anyhow::Result<()> {
-    use anyhow::Context;
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
-    let name = path.file_name().with_context(|| format!("{}: not a file path", path.display()))?;
-    let tmp = dir.join(format!(".{}.tmp-{}", name.to_string_lossy(), std::process::id()));
-    std::fs::write(&tmp, bytes).with_context(|| format!("{}: cannot write", path.display()))?;
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        anyhow::anyhow!("{}: cannot write: {e}", path.display())
+    prl_runtime::write_atomically(path, bytes).map_err(|e| match e {
+        prl_runtime::Error::Io { err, .. } => anyhow::anyhow!("{}: cannot write: {err}", path.display()),
+        other => other.into(),
     })
 }
 
