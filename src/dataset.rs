@@ -5,7 +5,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use crate::sequence::{parse_boxes, InputError, Sequence};
+use crate::sequence::{parse_boxes, read_text_bounded, InputError, Sequence};
 
 /// The layout of a dataset folder.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -189,7 +189,9 @@ fn uav123(root: &Path) -> Result<Dataset, InputError> {
                 ),
             ));
         }
-        let mut v = video(name.clone(), frame_files(&dir)?, parse_boxes(&anno)?, &anno)?;
+        let frames = frame_files(&dir)?;
+        let boxes = parse_boxes(&anno, frames.len())?;
+        let mut v = video(name.clone(), frames, boxes, &anno)?;
         let att = set.join("att").join(format!("{name}.txt"));
         if att.is_file() {
             v.attributes = uav123_attributes(&att)?;
@@ -200,7 +202,7 @@ fn uav123(root: &Path) -> Result<Dataset, InputError> {
 }
 
 fn uav123_attributes(path: &Path) -> Result<Vec<String>, InputError> {
-    let text = std::fs::read_to_string(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
+    let text = read_text_bounded(path, 4096, "an attribute file")?;
     let flags: Vec<&str> = text.split([',', ' ', '\t', '\n', '\r']).filter(|f| !f.is_empty()).collect();
     if flags.len() != UAV123_ATTRIBUTES.len() || flags.iter().any(|f| *f != "0" && *f != "1") {
         return Err(err(path, format!("expected {} attribute flags (0 or 1)", UAV123_ATTRIBUTES.len())));
@@ -217,7 +219,9 @@ fn uav112(root: &Path, anno_dir: &str) -> Result<Dataset, InputError> {
         if !anno.is_file() {
             continue; // UAVTrack112_L annotates only the long sequences
         }
-        videos.push(video(name, frame_files(&dir)?, parse_boxes(&anno)?, &anno)?);
+        let frames = frame_files(&dir)?;
+        let boxes = parse_boxes(&anno, frames.len())?;
+        videos.push(video(name, frames, boxes, &anno)?);
     }
     let name = if anno_dir == "anno_l" { format!("{}_L", name_of(root)) } else { name_of(root) };
     Ok(Dataset { name, videos })
@@ -233,10 +237,14 @@ fn json_file(root: &Path) -> Result<Option<PathBuf>, InputError> {
     Ok(jsons.into_iter().next())
 }
 
+/// The largest pysot dataset JSON read: a bound far above any benchmark's, so that a huge file
+/// is refused before it is read.
+pub const MAX_DATASET_JSON: u64 = 512 << 20;
+
 /// pysot-toolkit JSON: `{video: {img_names, gt_rect, init_rect, attr}}`, frames relative to root.
 fn pysot_json(root: &Path) -> Result<Dataset, InputError> {
     let path = json_file(root)?.ok_or_else(|| err(root, "no .json file"))?;
-    let text = std::fs::read_to_string(&path).map_err(|e| err(&path, format!("cannot read: {e}")))?;
+    let text = read_text_bounded(&path, MAX_DATASET_JSON, "a dataset JSON")?;
     parse_pysot_json(root, &path, &text)
 }
 

@@ -19,6 +19,10 @@ use crate::InputError;
 /// anything is allocated.
 pub const MAX_FRAME_PIXELS: u64 = 1 << 26;
 
+/// The longest frame file read (512 MiB: an 8192 x 8192 frame stored without compression takes
+/// 192 MiB as RGB, 512 MiB as 16-bit RGBA); a longer one is refused before it is read.
+pub const MAX_FRAME_FILE_BYTES: u64 = 512 << 20;
+
 /// What to do with a frame the decoder could only partly read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Damaged {
@@ -49,7 +53,7 @@ pub fn read_frame(path: &Path, damaged: Damaged) -> Result<Frame, InputError> {
 /// Read and decode one frame: the frame and, if the decoder had to make up part of it, what it
 /// said (libjpeg's warning, e.g. "Premature end of JPEG file").
 pub fn decode_frame(path: &Path) -> Result<(Frame, Option<String>), InputError> {
-    let bytes = std::fs::read(path).map_err(|e| InputError::new(path, format!("cannot read frame: {e}")))?;
+    let bytes = crate::read_bounded(path, MAX_FRAME_FILE_BYTES, "a frame")?;
     decode_frame_bytes(path, &bytes)
 }
 

@@ -15,6 +15,11 @@ pub mod video;
 
 pub use calibration::{calibration_crops, CalibrationSpec, POSITION_JITTER, SCALE_JITTER};
 pub use dataset::{detect, parse_pysot_json, Dataset, Format, Video, UAV123_ATTRIBUTES};
-pub use frames::{decode_frame, decode_frame_bytes, load_frame, read_frame, Damaged, MAX_FRAME_PIXELS};
+pub use frames::{
+    decode_frame, decode_frame_bytes, load_frame, read_frame, Damaged, MAX_FRAME_FILE_BYTES, MAX_FRAME_PIXELS,
+};
 pub use metrics::iou;
-pub use sequence::{init_box_from_groundtruth, parse_box, parse_boxes, parse_boxes_text, InputError, Sequence};
+pub use sequence::{
+    box_file_limit, init_box_from_groundtruth, parse_box, parse_boxes, parse_boxes_text, read_bounded,
+    read_text_bounded, InputError, Sequence,
+};

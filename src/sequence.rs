@@ -22,6 +22,37 @@ impl InputError {
     }
 }
 
+/// Read all of `path`, refusing a file longer than `limit` bytes before its contents are
+/// allocated (the length is checked from the file system first, then the read stops one byte
+/// past the limit, for files whose length the file system does not know, such as pipes).
+pub fn read_bounded(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>, InputError> {
+    use std::io::Read;
+    let too_long = |n: u64| InputError::new(path, format!("{n} bytes: too long for {what} (at most {limit})"));
+    let file = std::fs::File::open(path).map_err(|e| InputError::new(path, format!("cannot read: {e}")))?;
+    let declared = file.metadata().map(|m| m.len()).unwrap_or(0);
+    if declared > limit {
+        return Err(too_long(declared));
+    }
+    let mut bytes = Vec::with_capacity(declared as usize);
+    file.take(limit + 1).read_to_end(&mut bytes).map_err(|e| InputError::new(path, format!("cannot read: {e}")))?;
+    if bytes.len() as u64 > limit {
+        return Err(too_long(bytes.len() as u64));
+    }
+    Ok(bytes)
+}
+
+/// [`read_bounded`] as UTF-8 text.
+pub fn read_text_bounded(path: &Path, limit: u64, what: &str) -> Result<String, InputError> {
+    String::from_utf8(read_bounded(path, limit, what)?)
+        .map_err(|e| InputError::new(path, format!("not UTF-8 text (byte {})", e.utf8_error().valid_up_to())))
+}
+
+/// The longest box file taken for `frames` frames: 1 MiB plus 1 KiB a frame (a box line is
+/// about 40 bytes; ground truth may run past the frames it describes).
+pub fn box_file_limit(frames: usize) -> u64 {
+    (1 << 20) + 1024 * frames as u64
+}
+
 /// A sequence: its frames in order and, when known, one ground-truth box per frame.
 #[derive(Debug, Clone)]
 pub struct Sequence {
@@ -44,7 +75,7 @@ impl Sequence {
         let gt_path = Self::groundtruth_file(dir);
         let groundtruth = match gt_path {
             Some(p) => {
-                let gt = parse_boxes(&p)?;
+                let gt = parse_boxes(&p, frames.len())?;
                 if gt.len() < frames.len() {
                     return Err(InputError::new(&p, format!("{} boxes for {} frames", gt.len(), frames.len())));
                 }
@@ -81,11 +112,12 @@ impl Sequence {
     }
 }
 
-/// Parse a box file: one `x,y,w,h` per line, separated by commas, tabs or spaces; integers or
-/// floats; `NaN` rows kept. Blank lines are skipped; anything else malformed is an error naming
-/// the file and line.
-pub fn parse_boxes(path: &Path) -> Result<Vec<[f64; 4]>, InputError> {
-    let text = std::fs::read_to_string(path).map_err(|e| InputError::new(path, format!("cannot read: {e}")))?;
+/// Parse a box file describing `frames` frames (a longer file than [`box_file_limit`] allows
+/// is refused before it is read): one `x,y,w,h` per line, separated by commas, tabs or spaces;
+/// integers or floats; `NaN` rows kept. Blank lines are skipped; anything else malformed is an
+/// error naming the file and line.
+pub fn parse_boxes(path: &Path, frames: usize) -> Result<Vec<[f64; 4]>, InputError> {
+    let text = read_text_bounded(path, box_file_limit(frames), &format!("a box file of {frames} frames"))?;
     parse_boxes_text(path, &text)
 }
 

@@ -9,7 +9,7 @@ use prl_runtime::{Family, Plan, Tracker};
 use prl_track::{init_box_from_groundtruth, tracking, Sequence};
 
 fn read_boxes(path: &Path) -> Vec<[f64; 4]> {
-    prl_track::parse_boxes(path).unwrap()
+    prl_track::parse_boxes(path, 10_000).unwrap()
 }
 
 #[test]
@@ -87,6 +87,15 @@ fn import_errors_name_the_file_and_the_problem() {
     std::fs::write(&orphan, &bytes).unwrap();
     let e = import_err(&backbone, &orphan, None);
     assert!(e.starts_with(&orphan.display().to_string()) && e.contains("made by no node"), "{e}");
+    // NaN weights (8 bytes of 0xff in the middle of the backbone's weights hold at least one
+    // whole NaN float): refused, naming the weight.
+    let nan = tmp.path().join("nan.onnx");
+    let mut bytes = std::fs::read(&backbone).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid..mid + 8].fill(0xff);
+    std::fs::write(&nan, &bytes).unwrap();
+    let e = import_err(&nan, &head, None);
+    assert!(e.starts_with(&nan.display().to_string()) && e.contains("NaN values"), "{e}");
     // Not a file at all.
     let e = import_err(&tmp.path().join("absent.onnx"), &head, None);
     assert!(e.contains("absent.onnx"), "{e}");

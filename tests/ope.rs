@@ -9,7 +9,8 @@ use prl_track::parse_boxes;
 const SEQS: &str = "../shared/data/uav123_10fps";
 
 fn gt_of(name: &str) -> Vec<[f64; 4]> {
-    parse_boxes(&Path::new(env!("CARGO_MANIFEST_DIR")).join(SEQS).join(name).join("groundtruth_rect.txt")).unwrap()
+    parse_boxes(&Path::new(env!("CARGO_MANIFEST_DIR")).join(SEQS).join(name).join("groundtruth_rect.txt"), 10_000)
+        .unwrap()
 }
 
 /// The synthetic result the pinned values were computed from: offsets cycling with the frame

@@ -1,22 +1,26 @@
 //! Sequence folders and box files, as OTB / UAV123 lay them out.
 
-use prl_track::{init_box_from_groundtruth, parse_box, parse_boxes, Sequence};
+use prl_track::{box_file_limit, init_box_from_groundtruth, parse_box, parse_boxes, Sequence};
 
 #[test]
 fn boxes_with_any_separator_and_nan_rows() {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("gt.txt");
     std::fs::write(&p, "1,2,3,4\n5\t6\t7\t8\n9 10  11 12\n\nNaN,NaN,NaN,NaN\n1.5,2.25,3,4\n").unwrap();
-    let b = parse_boxes(&p).unwrap();
+    let b = parse_boxes(&p, 6).unwrap();
     assert_eq!(b.len(), 5);
     assert_eq!(b[1], [5., 6., 7., 8.]);
     assert_eq!(b[2], [9., 10., 11., 12.]);
     assert!(b[3].iter().all(|v| v.is_nan()));
     assert_eq!(b[4], [1.5, 2.25, 3., 4.]);
     std::fs::write(&p, "1,2,3,4\n1,2,x,4\n").unwrap();
-    let err = parse_boxes(&p).unwrap_err().to_string();
+    let err = parse_boxes(&p, 6).unwrap_err().to_string();
     assert!(err.contains("gt.txt") && err.contains("line 2") && err.contains("`x`"), "{err}");
     assert!(parse_box("1,2,3").is_err());
+    // Longer than any box file of 6 frames: refused before it is read (a sparse 1 MiB + 7 KiB).
+    std::fs::File::create(&p).unwrap().set_len(box_file_limit(6) + 1).unwrap();
+    let err = parse_boxes(&p, 6).unwrap_err().to_string();
+    assert!(err.contains("gt.txt") && err.contains("too long for a box file of 6 frames"), "{err}");
 }
 
 #[test]

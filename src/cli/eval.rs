@@ -105,7 +105,7 @@ fn score(dataset: &Dataset, dir: &Path) -> anyhow::Result<BTreeMap<String, Curve
     for v in &dataset.videos {
         let path = dir.join(format!("{}.txt", v.name));
         anyhow::ensure!(path.is_file(), "{}: missing (video {} of {})", path.display(), v.name, dataset.name);
-        let result = parse_boxes(&path)?;
+        let result = parse_boxes(&path, v.groundtruth.len())?;
         let curves = evaluate(&v.groundtruth, &result).map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
         out.insert(v.name.clone(), curves);
     }

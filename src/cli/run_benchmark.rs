@@ -59,7 +59,7 @@ fn parse_shard(s: &str) -> Result<(usize, usize), String> {
 
 /// True when `path` holds one result line per ground-truth frame of `v`.
 fn complete(path: &Path, v: &Video) -> bool {
-    std::fs::read_to_string(path)
+    prl_track::read_text_bounded(path, prl_track::box_file_limit(v.groundtruth.len()), "a result file")
         .map(|t| t.lines().filter(|l| !l.trim().is_empty()).count() == v.groundtruth.len())
         .unwrap_or(false)
 }
