@@ -131,6 +131,17 @@ fn missing_key_and_wrong_shape_name_the_key_and_shapes() {
 }
 
 #[test]
+fn nan_or_infinite_weights_are_refused_by_key() {
+    let mut p = Pickle::new();
+    p.op(b'}').mark();
+    p.str("bad.weight").tensor("FloatStorage", "0", 4, 0, &[4], &[1]);
+    p.op(b'u');
+    let c = load(&torch_zip(Some(&p.finish()), &[("0", f32_bytes(&[1., f32::NAN, f32::INFINITY, 2.]))])).unwrap();
+    let err = Weights::from_checkpoint(c).root().get("bad.weight", &[4], ANY).unwrap_err().to_string();
+    assert!(err.contains("`bad.weight`") && err.contains("2 NaN or infinite values"), "{err}");
+}
+
+#[test]
 fn truncated_archives_are_errors_not_panics() {
     let full = strided_archive();
     for cut in (0..full.len()).step_by(7) {

@@ -26,6 +26,9 @@ pub enum Error {
     /// A weight the network needs is not a plain tensor in the checkpoint.
     #[error("{source_name}: weight `{key}` is not a tensor: {what}")]
     NotATensor { source_name: String, key: String, what: String },
+    /// A weight holds NaN or infinite values: every output would be NaN.
+    #[error("{source_name}: weight `{key}` holds {count} NaN or infinite values (a corrupt or diverged checkpoint?)")]
+    NonFinite { source_name: String, key: String, count: usize },
     /// The ONNX builder was asked for something inconsistent.
     #[error("graph `{graph}`, node `{node}`: {msg}")]
     Graph { graph: String, node: String, msg: String },

@@ -105,7 +105,12 @@ impl Weights {
                     expected: shape.to_vec(),
                 };
                 match c.entries.get(key).ok_or_else(missing)? {
-                    Entry::Tensor { tensor, .. } if tensor.shape == shape => Ok(tensor.clone()),
+                    Entry::Tensor { tensor, .. } if tensor.shape == shape => {
+                        match tensor.data.iter().filter(|v| !v.is_finite()).count() {
+                            0 => Ok(tensor.clone()),
+                            count => Err(Error::NonFinite { source_name: self.source_name(), key: key.into(), count }),
+                        }
+                    }
                     Entry::Tensor { tensor, .. } => Err(Error::WrongShape {
                         source_name: self.source_name(),
                         key: key.into(),

@@ -43,6 +43,16 @@ fn concrete(v: &pb::ValueInfoProto) -> Option<Vec<usize>> {
     dims(v)?.into_iter().collect()
 }
 
+/// NaN values in an f32 tensor's data (`None` for other types).
+fn nan_count(t: &pb::TensorProto) -> Option<usize> {
+    const FLOAT: i32 = 1;
+    if t.data_type != FLOAT {
+        return None;
+    }
+    let raw = t.raw_data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]));
+    Some(raw.chain(t.float_data.iter().copied()).filter(|v| v.is_nan()).count())
+}
+
 impl Onnx {
     /// Decode `file` as an ONNX model with a graph of nodes.
     pub fn decode(file: &super::OnnxFile) -> Result<Onnx> {
@@ -63,6 +73,13 @@ impl Onnx {
             .collect();
         if let Some(o) = g.output.iter().find(|o| !made.contains(o.name.as_str())) {
             return Err(graph_err(&path, format!("graph output `{}` is made by no node", o.name)));
+        }
+        // A NaN weight makes every output NaN: a corrupt or diverged model, refused by name.
+        // (Infinities pass: exporters use them for open clip bounds and masks.)
+        let constants = g.node.iter().filter(|n| n.op_type == "Constant").flat_map(|n| n.attribute.iter());
+        let tensors = g.initializer.iter().chain(constants.filter_map(|a| a.t.as_ref()));
+        if let Some((name, count)) = tensors.filter_map(|t| nan_count(t).map(|c| (&t.name, c))).find(|(_, c)| *c > 0) {
+            return Err(graph_err(&path, format!("weight `{name}` holds {count} NaN values (a corrupt model?)")));
         }
         Ok(Onnx { path, model })
     }
