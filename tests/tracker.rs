@@ -178,6 +178,46 @@ fn corrupt_or_mismatched_plans_are_refused() {
     assert!(Plan::load(dir.path()).is_err());
 }
 
+/// A plan whose tracker settings disagree with its graphs' shapes (an edited `plan.json`, its
+/// hashes still right) is refused when loaded, naming the file and both shapes: the tracker
+/// indexes the score map by the settings.
+#[test]
+fn plans_whose_settings_and_graphs_disagree_are_refused() {
+    let src = common::reference_plan();
+    let dir = tempfile::tempdir().unwrap();
+    for f in ["plan.json", "template.nnef.tar", "search.nnef.tar"] {
+        std::fs::copy(src.join(f), dir.path().join(f)).unwrap();
+    }
+    let original: serde_json::Value = serde_json::from_slice(&std::fs::read(src.join("plan.json")).unwrap()).unwrap();
+    let refused = |edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut m = original.clone();
+        edit(&mut m);
+        std::fs::write(dir.path().join("plan.json"), serde_json::to_vec(&m).unwrap()).unwrap();
+        Plan::load(dir.path()).err().expect("refused").to_string()
+    };
+    let n = original["tracker"]["score_size"].as_u64().unwrap();
+    let err = refused(&|m| m["tracker"]["score_size"] = (n + 1).into());
+    assert!(err.contains("plan.json") && err.contains(&format!("{0}x{0} score map", n + 1)), "{err}");
+    let err = refused(&|m| m["tracker"]["instance_size"] = 256.into());
+    assert!(err.contains("plan.json") && err.contains("search crops of 256x256"), "{err}");
+    let err = refused(&|m| m["tracker"]["stride"] = 0.into());
+    assert!(err.contains("between 1 and 4096"), "{err}");
+    // Settings and manifest shapes edited alike: the graph itself disagrees.
+    let err = refused(&|m| {
+        m["tracker"]["score_size"] = (n + 1).into();
+        for o in m["search"]["outputs"].as_array_mut().unwrap() {
+            let c = o["shape"][1].clone();
+            o["shape"] = serde_json::json!([1, c, n + 1, n + 1]);
+        }
+    });
+    assert!(
+        err.contains("search.nnef.tar") && err.contains("in the graph") && err.contains("in the manifest"),
+        "{err}"
+    );
+    std::fs::write(dir.path().join("plan.json"), serde_json::to_vec(&original).unwrap()).unwrap();
+    Plan::load(dir.path()).expect("the untouched plan loads");
+}
+
 #[test]
 fn search_profile_covers_every_node_slowest_first() {
     let plan = Plan::load(common::reference_plan()).unwrap();

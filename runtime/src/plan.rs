@@ -279,6 +279,17 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             )));
         }
     }
+    // The tracker indexes the outputs by the manifest's shapes (checked against its settings):
+    // a graph that gives other shapes is refused here, not found out mid-track.
+    for (i, t) in info.outputs.iter().enumerate() {
+        let fact = model.output_fact(i).map_err(tract_err)?;
+        if fact.shape.as_concrete() != Some(&t.shape[..]) {
+            return Err(bad(format!(
+                "output `{}` has shape {:?} in the graph, {:?} in the manifest",
+                t.name, fact.shape, t.shape
+            )));
+        }
+    }
     let model = knobs
         .enter(|| {
             // Declutter first: constants reach the convolutions' weight and bias inputs (the
