@@ -135,9 +135,9 @@ gt[3] = [float("nan")] * 4
 doc = {seq: {"video_dir": seq, "init_rect": gt[0], "img_names": [f"{seq}/img/{i}" for i in imgs], "gt_rect": gt, "attr": ["Scale Variation", "Camera Motion"]}}
 put("pysot_json", "UAV123.json", json.dumps(doc).encode())
 
-# Frames: a real frame shrunk (JPEG, PNG), and the JPEG cut short.
+# Frames: a real frame shrunk (JPEG, PNG, BMP, WebP), and the JPEG cut short.
 frame = os.path.join(seqs, seq, "img", imgs[0])
-for ext in ["jpg", "png", "bmp"]:
+for ext in ["jpg", "png", "bmp", "webp"]:
     path = os.path.join(out, f"small.{ext}")
     subprocess.run(["ffmpeg", "-v", "error", "-y", "-i", frame, "-vf", "scale=80:45", path], check=True)
     with open(path, "rb") as f:

@@ -178,3 +178,20 @@ fn bench_reports_stages_and_operators() {
     assert_eq!(ops.len(), 12);
     assert!(ops.iter().any(|o| o["gflops"].as_f64().unwrap() > 0.0));
 }
+
+/// `list_frames` takes jpg, png, bmp and webp: each lossless format decodes to the same pixels.
+#[test]
+fn png_bmp_and_webp_frames_decode_alike() {
+    let dir = tempfile::tempdir().unwrap();
+    let img = drift_frame(1);
+    let mut frames = vec![];
+    for ext in ["png", "bmp", "webp"] {
+        let p = dir.path().join(format!("f.{ext}"));
+        img.save(&p).unwrap();
+        let (frame, damage) = prl_track::decode_frame(&p).unwrap();
+        assert!(damage.is_none());
+        frames.push(frame);
+    }
+    assert!(frames.iter().all(|f| *f == frames[0]), "the same pixels from every format");
+    assert_eq!((frames[0].width(), frames[0].height()), (img.width() as usize, img.height() as usize));
+}
