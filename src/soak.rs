@@ -43,13 +43,32 @@ pub struct SoakReport {
     pub fd_growth: i64,
     /// Median ms per frame of the last window over the first one after warm-up.
     pub time_ratio: f64,
+    /// Drift of the per-frame time after warm-up: the median of the later half's window
+    /// medians over the earlier half's, minus 1 (0.1: 10% slower). Medians of halves, because
+    /// a shared machine swings one window by 30%; a tracker that slows as it runs moves them.
+    pub time_drift: f64,
+}
+
+/// What a soak run must stay within.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SoakLimits {
+    /// Largest resident-memory growth after warm-up (0.02: 2%).
+    pub rss: f64,
+    /// Largest per-frame time drift after warm-up (0.25: 25%).
+    pub time: f64,
 }
 
 impl SoakReport {
-    /// Whether memory stayed within `rss_tolerance` (0.02: 2%) and no descriptor leaked.
-    pub fn holds(&self, rss_tolerance: f64) -> bool {
-        self.rss_growth <= rss_tolerance && self.fd_growth <= 0
+    /// Whether memory and time stayed within `limits` and no descriptor leaked.
+    pub fn holds(&self, limits: SoakLimits) -> bool {
+        self.rss_growth <= limits.rss && self.time_drift <= limits.time && self.fd_growth <= 0
     }
+}
+
+/// The median of `v` (NaN for none).
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 /// Resident memory of this process in MB (`/proc/self/statm`), if the OS says.
@@ -127,7 +146,8 @@ fn summarise(samples: Vec<SoakSample>, warm: usize) -> SoakReport {
     let warm = warm.max(1).min(samples.len().saturating_sub(1));
     let after = &samples[warm.min(samples.len())..];
     let (Some(base), Some(last)) = (after.first(), after.last()) else {
-        return SoakReport { samples, warm, rss_growth: 0.0, rss_range: (0.0, 0.0), fd_growth: 0, time_ratio: 1.0 };
+        let (rss_growth, rss_range, fd_growth, time_ratio, time_drift) = (0.0, (0.0, 0.0), 0, 1.0, 0.0);
+        return SoakReport { samples, warm, rss_growth, rss_range, fd_growth, time_ratio, time_drift };
     };
     let peak = |s: &[SoakSample]| s.iter().map(|s| s.rss_mb).fold(f64::MIN, f64::max);
     let (earlier, later) = after.split_at(after.len() / 2);
@@ -135,7 +155,9 @@ fn summarise(samples: Vec<SoakSample>, warm: usize) -> SoakReport {
     let low = after.iter().map(|s| s.rss_mb).fold(f64::MAX, f64::min);
     let (rss_range, fd_growth) = ((low, peak(after)), last.fds as i64 - base.fds as i64);
     let time_ratio = last.median_ms / base.median_ms;
-    SoakReport { samples, warm, rss_growth, rss_range, fd_growth, time_ratio }
+    let ms = |s: &[SoakSample]| median(s.iter().map(|s| s.median_ms).collect());
+    let time_drift = if earlier.is_empty() { 0.0 } else { ms(later) / ms(earlier) - 1.0 };
+    SoakReport { samples, warm, rss_growth, rss_range, fd_growth, time_ratio, time_drift }
 }
 
 #[cfg(test)]
@@ -157,9 +179,19 @@ mod tests {
         v.extend((2..12).map(|i| s(i, if i % 3 == 0 { 103.0 } else { 100.0 + i as f64 * 0.01 }, 5)));
         let r = summarise(v.clone(), 1);
         assert_eq!(r.warm, 1);
-        assert!(r.rss_growth.abs() < 0.01 && r.holds(0.02) && r.rss_range == (100.02, 103.0), "{r:?}");
+        let limits = SoakLimits { rss: 0.02, time: 0.25 };
+        assert!(r.rss_growth.abs() < 0.01 && r.holds(limits) && r.rss_range == (100.02, 103.0), "{r:?}");
+        assert_eq!(r.time_drift, 0.0);
+        let mut slower = v.clone();
+        slower.iter_mut().skip(7).for_each(|s| s.median_ms = 14.0);
+        let r = summarise(slower, 1);
+        assert!((r.time_drift - 0.4).abs() < 1e-9 && !r.holds(limits), "{r:?}");
+        // One slow window is a swing, not a drift.
+        let mut swing = v.clone();
+        swing[9].median_ms = 30.0;
+        assert!(summarise(swing, 1).holds(limits));
         v.push(s(12, 110.0, 6));
         let r = summarise(v, 1);
-        assert!(!r.holds(0.02) && r.fd_growth == 1);
+        assert!(!r.holds(limits) && r.fd_growth == 1);
     }
 }

@@ -18,11 +18,13 @@ fn a_short_soak_holds_and_reports_every_sample() {
     };
     // 1,200 judged frames are too few for the 2% a 100,000-frame run is held to: glibc hands
     // freed frame buffers back to the OS at its own pace, and CI saw 2.15% from that alone.
-    // 10% still catches a leak of 6 KB a frame (a leaked frame buffer is 2.7 MB).
-    let short: Vec<&str> = "--frames 2400 --every 100 --warm-up 1200 --rss-tolerance 0.10 --json".split(' ').collect();
+    // 10% still catches a leak of 6 KB a frame (a leaked frame buffer is 2.7 MB). The time is
+    // held to 2x (CI shares its cores): a tracker whose frames slow as it runs still fails.
+    let short = "--frames 2400 --every 100 --warm-up 1200 --rss-tolerance 0.10 --time-tolerance 1 --json";
+    let short: Vec<&str> = short.split(' ').collect();
     let o = soak(&[&short[..], &[json.to_str().unwrap()]].concat());
     let out = common::ok(&o);
-    assert!(out.contains("soak holds: memory within 10%"), "{out}");
+    assert!(out.contains("soak holds: memory within 10%, per-frame time within 100%"), "{out}");
     let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     assert_eq!(doc["holds"], true);
     let samples = doc["report"]["samples"].as_array().unwrap();

@@ -29,6 +29,10 @@ pub struct SoakArgs {
     /// Largest resident-memory growth after warm-up that passes (0.02: 2%).
     #[arg(long, default_value_t = 0.02)]
     rss_tolerance: f64,
+    /// Largest drift of the per-frame time after warm-up that passes (0.25: the later half's
+    /// median frame time at most 25% above the earlier half's).
+    #[arg(long, default_value_t = 0.25)]
+    time_tolerance: f64,
     /// Threads for the network.
     #[arg(long, default_value_t = 1)]
     threads: usize,
@@ -51,15 +55,16 @@ pub fn run(a: SoakArgs) -> anyhow::Result<()> {
     let report = soak::soak(&mut tracker, &seq.frames, init, a.frames, a.every, warm_up, |s| {
         println!("{:>9} {:>9.1} {:>5} {:>10.2}", s.frame, s.rss_mb, s.fds, s.median_ms)
     })?;
-    let holds = report.holds(a.rss_tolerance);
+    let holds = report.holds(soak::SoakLimits { rss: a.rss_tolerance, time: a.time_tolerance });
     println!(
         "after warm-up ({} samples): resident memory {:.1}-{:.1} MB, growth {:+.2}% (later peak / earlier), \
-         open descriptors {:+}, per-frame time x{:.2} (last window / first)",
+         open descriptors {:+}, per-frame time drift {:+.1}% (later half's median / earlier), x{:.2} (last window / first)",
         report.warm,
         report.rss_range.0,
         report.rss_range.1,
         report.rss_growth * 100.0,
         report.fd_growth,
+        report.time_drift * 100.0,
         report.time_ratio
     );
     if let Some(path) = &a.json {
@@ -68,11 +73,18 @@ pub fn run(a: SoakArgs) -> anyhow::Result<()> {
     }
     anyhow::ensure!(
         holds,
-        "soak failed: resident memory grew {:.2}% (tolerance {:.2}%), open descriptors {:+}",
+        "soak failed: resident memory grew {:.2}% (tolerance {:.2}%), per-frame time drifted {:+.1}% (tolerance {:.0}%), \
+         open descriptors {:+}",
         report.rss_growth * 100.0,
         a.rss_tolerance * 100.0,
+        report.time_drift * 100.0,
+        a.time_tolerance * 100.0,
         report.fd_growth
     );
-    println!("soak holds: memory within {:.0}%, no descriptor leaked", a.rss_tolerance * 100.0);
+    println!(
+        "soak holds: memory within {:.0}%, per-frame time within {:.0}%, no descriptor leaked",
+        a.rss_tolerance * 100.0,
+        a.time_tolerance * 100.0
+    );
     Ok(())
 }
