@@ -147,3 +147,69 @@ fn live_pacing_drops_frames_and_counts_them() {
     assert_eq!(frames[0], 0);
     assert_eq!(*frames.last().unwrap() + 1, tracked + dropped, "{frames:?} {line}");
 }
+
+/// The pids of `pid`'s child processes named `name` (from `/proc`).
+fn children_named(pid: u32, name: &str) -> Vec<i32> {
+    let Ok(rd) = std::fs::read_dir("/proc") else { return vec![] };
+    rd.filter_map(|e| e.ok()?.file_name().to_str()?.parse::<i32>().ok())
+        .filter(|p| {
+            let stat = std::fs::read_to_string(format!("/proc/{p}/stat")).unwrap_or_default();
+            // `pid (comm) state ppid ...`; comm may hold spaces, so split after its `)`.
+            let (comm, rest) = (stat.split(['(', ')']).nth(1).unwrap_or(""), stat.rsplit(')').next().unwrap_or(""));
+            comm == name && rest.split_whitespace().nth(1) == Some(&pid.to_string())
+        })
+        .collect()
+}
+
+/// A stream that breaks mid-way (the decoder killed, as when a link drops): a one-line error
+/// naming the source, after the frames that came; a file cut short: the frames before the cut,
+/// tracked as in the whole file, and the run ends cleanly.
+#[test]
+fn a_stream_that_breaks_or_a_file_cut_short() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = common::nanotrack_plan(tmp.path());
+    let video = tmp.path().join("long.mkv");
+    let (w, h, n) = (320, 240, 300);
+    encode(&video, w, h, (0..n).map(|i| (0..w * h * 3).map(|k| ((k / 3 % w + 2 * i) % 256) as u8).collect()));
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let args = |v: &Path| {
+        ["track", "--plan", &s(&plan), "--video", &s(v), "--init", "100,80,60,50", "--jsonl"].map(String::from)
+    };
+    let mut child = Command::new(env!("CARGO_BIN_EXE_prl"))
+        .args(args(&video))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = std::io::BufRead::lines(std::io::BufReader::new(child.stdout.take().unwrap()));
+    for _ in 0..3 {
+        lines.next().unwrap().unwrap();
+    }
+    let ffmpeg = children_named(child.id(), "ffmpeg");
+    assert_eq!(ffmpeg.len(), 1, "one ffmpeg decoding for prl");
+    // SAFETY: kill(2) on a pid just read from /proc; the worst case is a signal to nothing.
+    assert_eq!(unsafe { libc::kill(ffmpeg[0], libc::SIGKILL) }, 0);
+    let seen = 3 + lines.count();
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    let last = err.trim().lines().last().unwrap_or("");
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(last.starts_with("error: ") && last.contains("long.mkv") && last.contains("signal"), "{err}");
+    assert!(seen < n, "{seen} frames before the break");
+
+    // The file cut in half: what is before the cut tracks as in the whole file.
+    let whole = common::ok(&common::prl(&args(&video).iter().map(String::as_str).collect::<Vec<_>>()));
+    let bytes = std::fs::read(&video).unwrap();
+    let cut = tmp.path().join("cut.mkv");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let o = common::prl(&args(&cut).iter().map(String::as_str).collect::<Vec<_>>());
+    let part = common::ok(&o);
+    let (whole, part): (Vec<&str>, Vec<&str>) = (whole.lines().collect(), part.lines().collect());
+    assert_eq!(whole.len(), n);
+    assert!(part.len() > 10 && part.len() < n, "{} frames of the cut file", part.len());
+    let boxes = |l: &&str| serde_json::from_str::<serde_json::Value>(l).unwrap()["box"].clone();
+    assert!(part.iter().zip(&whole).all(|(a, b)| boxes(a) == boxes(b)), "the frames before the cut track alike");
+}
