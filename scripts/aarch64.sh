@@ -57,17 +57,24 @@ build() {
 }
 
 check() {
-    build
+    install_tools
+    cross_env
+    # One aarch64 build serves every check: the runtime's and the library's unit tests, the
+    # tracker test and the `prl` binary it needs (built with the tests' features; separate
+    # `cargo build` and `cargo test -p prl-runtime` runs would each rebuild tract, CI's cores
+    # cannot spare that). `bash scripts/aarch64.sh build` is the release binary to ship.
+    local select=(--release --target "$TARGET" -p prl-runtime -p prl-track)
+    cargo test "${select[@]}" --lib --test tracker --no-run
     local work=$ROOT/target/aarch64-check
-    # The x86 side only compiles and records plans: the dev build (what `cargo test` builds; its
-    # dependencies and the runtime are optimised) serves, and CI has it already.
+    # The x86 side only compiles and records plans: the dev build (what `cargo test --workspace`
+    # builds; its dependencies and the runtime are optimised) serves, and CI has it already.
     local host=$ROOT/target/debug/prl
     local arm=$ROOT/target/$TARGET/release/prl
     local golden=$SHARED/fixtures/prl-golden-v1
     local calib=$SHARED/data/uav123_10fps/building4
     rm -rf "$work"
     mkdir -p "$work"
-    cargo build --bin prl
+    cargo test --workspace --no-run
     echo "== x86: plans and their recorded outputs"
     "$host" compile --checkpoint "$golden/checkpoint.pth" --out "$work/prl-plan"
     "$host" import nanotrack --out "$work/nanotrack-model"
@@ -80,8 +87,8 @@ check() {
     done
     local qemu=(qemu-aarch64 -L /usr/aarch64-linux-gnu -cpu "$QEMU_CPU")
     echo "== aarch64 (qemu -cpu $QEMU_CPU): the runtime's unit tests, NEON and portable paths"
-    cargo test --release --target "$TARGET" -p prl-runtime --lib
-    PRL_ISA=generic cargo test --release --target "$TARGET" -p prl-runtime --lib
+    cargo test "${select[@]}" --lib
+    PRL_ISA=generic cargo test "${select[@]}" --lib
     echo "== aarch64: x86 plans against their x86 recordings"
     for p in prl-plan nanotrack-plan; do
         "${qemu[@]}" "$arm" verify --plan "$work/$p" --tensors "$work/$p-rec" --tolerance 1e-4
@@ -99,7 +106,7 @@ check() {
     echo "== aarch64: the golden drift trace on the x86 plan (${AARCH64_TRACE_FRAMES:-all} frames, 2 threads)"
     PRL_GOLDEN_DIR=$golden PRL_REFERENCE_PLAN=$work/prl-plan PRL_TEST_THREADS=2 \
         PRL_TRACE_FRAMES=${AARCH64_TRACE_FRAMES:-1000000} \
-        cargo test --release --target "$TARGET" --test tracker drift_sequence_matches_the_official_tracker -- --nocapture
+        cargo test "${select[@]}" --test tracker drift_sequence_matches_the_official_tracker -- --nocapture
     echo "aarch64 checks passed"
 }
 
