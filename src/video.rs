@@ -70,7 +70,7 @@ enum Reader {
 #[derive(Default)]
 struct Slot {
     frame: Option<(usize, Duration, Vec<u8>)>,
-    ended: Option<Result<(), String>>,
+    ended: Option<Result<(), ReadFailure>>,
 }
 
 /// FFmpeg's (and ffprobe's) input options for a source: a V4L2 device for `/dev/video*`, else what FFmpeg
@@ -167,7 +167,7 @@ impl VideoSource {
                         }
                     }
                     Ok(None) => break None,
-                    Err(msg) => return Err(self.failure(msg)),
+                    Err(f) => return Err(self.failure(f)),
                 }
             },
             Reader::Live { slot } => {
@@ -180,10 +180,10 @@ impl VideoSource {
                     }
                     match &s.ended {
                         Some(Ok(())) => break None,
-                        Some(Err(msg)) => {
-                            let msg = msg.clone();
+                        Some(Err(f)) => {
+                            let f = f.clone();
                             drop(s);
-                            return Err(self.failure(msg));
+                            return Err(self.failure(f));
                         }
                         None => s = ready.wait(s).expect("reader thread does not panic holding the lock"),
                     }
@@ -201,13 +201,19 @@ impl VideoSource {
         Ok(Some(VideoFrame { index, time, frame }))
     }
 
-    /// A read failure, with FFmpeg's own reason where it gave one.
-    fn failure(&mut self, msg: String) -> VideoError {
-        let _ = self.child.kill();
-        match wait_for(&mut self.child, &self.src) {
-            Err(e) if !e.msg.starts_with("ffmpeg exited") => e,
-            _ => VideoError { src: self.src.clone(), msg },
+    /// A read failure, with FFmpeg's own reason where it gave one. If FFmpeg closed the pipe it
+    /// has ended by itself (killed, crashed, or a broken stream): its exit status comes first.
+    /// Otherwise it is stopped here, and its status (our own kill) says nothing.
+    fn failure(&mut self, f: ReadFailure) -> VideoError {
+        if !f.closed {
+            let _ = self.child.kill();
         }
+        let msg = match wait_for(&mut self.child, &self.src) {
+            Err(e) if f.closed => format!("{}; {}", e.msg, f.msg),
+            Err(e) if !e.msg.starts_with("ffmpeg exited") => e.msg,
+            _ => f.msg,
+        };
+        VideoError { src: self.src.clone(), msg }
     }
 }
 
@@ -233,17 +239,28 @@ fn wait_for(child: &mut Child, src: &str) -> Result<(), VideoError> {
     }
 }
 
+/// Why a frame could not be read from FFmpeg's pipe.
+#[derive(Debug, Clone)]
+struct ReadFailure {
+    msg: String,
+    /// FFmpeg closed the pipe (mid-frame): it has ended, and its exit status says why.
+    closed: bool,
+}
+
 /// One frame of `bytes` from the pipe; `None` at a clean end between frames.
-fn read_frame(pipe: &mut impl Read, bytes: usize) -> Result<Option<Vec<u8>>, String> {
+fn read_frame(pipe: &mut impl Read, bytes: usize) -> Result<Option<Vec<u8>>, ReadFailure> {
     let mut buf = vec![0u8; bytes];
     let mut filled = 0;
     while filled < bytes {
         match pipe.read(&mut buf[filled..]) {
             Ok(0) if filled == 0 => return Ok(None),
-            Ok(0) => return Err(format!("the stream ended inside a frame ({filled} of {bytes} bytes)")),
+            Ok(0) => {
+                let msg = format!("the stream ended inside a frame ({filled} of {bytes} bytes)");
+                return Err(ReadFailure { msg, closed: true });
+            }
             Ok(n) => filled += n,
             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-            Err(e) => return Err(format!("reading ffmpeg's output: {e}")),
+            Err(e) => return Err(ReadFailure { msg: format!("reading ffmpeg's output: {e}"), closed: false }),
         }
     }
     Ok(Some(buf))
@@ -270,7 +287,7 @@ fn live_reader(mut pipe: ChildStdout, bytes: usize, first: usize, slot: Arc<(Mut
         match got {
             Ok(Some(buf)) => s.frame = Some((index, start.elapsed(), buf)),
             Ok(None) => s.ended = Some(Ok(())),
-            Err(msg) => s.ended = Some(Err(msg)),
+            Err(f) => s.ended = Some(Err(f)),
         }
         let done = s.ended.is_some();
         drop(s);
