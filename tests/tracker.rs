@@ -152,13 +152,18 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
     }
 }
 
-#[test]
-fn corrupt_or_mismatched_plans_are_refused() {
-    let src = common::reference_plan();
-    let dir = tempfile::tempdir().unwrap();
+/// The reference plan's files copied into a fresh folder, to be damaged.
+fn copy_of_reference_plan() -> tempfile::TempDir {
+    let (src, dir) = (common::reference_plan(), tempfile::tempdir().unwrap());
     for f in ["plan.json", "template.nnef.tar", "search.nnef.tar"] {
         std::fs::copy(src.join(f), dir.path().join(f)).unwrap();
     }
+    dir
+}
+
+#[test]
+fn corrupt_or_mismatched_plans_are_refused() {
+    let dir = copy_of_reference_plan();
     let mut bytes = std::fs::read(dir.path().join("search.nnef.tar")).unwrap();
     let mid = bytes.len() / 2;
     bytes[mid] ^= 0xff;
@@ -183,11 +188,7 @@ fn corrupt_or_mismatched_plans_are_refused() {
 /// indexes the score map by the settings.
 #[test]
 fn plans_whose_settings_and_graphs_disagree_are_refused() {
-    let src = common::reference_plan();
-    let dir = tempfile::tempdir().unwrap();
-    for f in ["plan.json", "template.nnef.tar", "search.nnef.tar"] {
-        std::fs::copy(src.join(f), dir.path().join(f)).unwrap();
-    }
+    let (src, dir) = (common::reference_plan(), copy_of_reference_plan());
     let original: serde_json::Value = serde_json::from_slice(&std::fs::read(src.join("plan.json")).unwrap()).unwrap();
     let refused = |edit: &dyn Fn(&mut serde_json::Value)| {
         let mut m = original.clone();

@@ -39,6 +39,11 @@ fn encode(out: &Path, w: usize, h: usize, frames: impl Iterator<Item = Vec<u8>>)
     assert!(ff.wait().unwrap().success());
 }
 
+/// `n` BGR frames of `w`x`h` vertical stripes moving 2 pixels a frame.
+fn stripes(w: usize, h: usize, n: usize) -> impl Iterator<Item = Vec<u8>> {
+    (0..n).map(move |i| (0..w * h * 3).map(|k| ((k / 3 % w + 2 * i) % 256) as u8).collect())
+}
+
 #[test]
 fn a_lossless_video_tracks_exactly_as_its_frames() {
     if !have_ffmpeg() {
@@ -114,7 +119,7 @@ fn live_pacing_drops_frames_and_counts_them() {
     let tmp = tempfile::tempdir().unwrap();
     let video = tmp.path().join("fast.mkv");
     let (w, h, n) = (320, 240, 120);
-    encode(&video, w, h, (0..n).map(|i| (0..w * h * 3).map(|k| ((k / 3 % w + 2 * i) % 256) as u8).collect()));
+    encode(&video, w, h, stripes(w, h, n));
     let s = |p: &Path| p.to_str().unwrap().to_string();
     let results = tmp.path().join("live.txt");
     let out = common::ok(&common::prl(&[
@@ -173,7 +178,7 @@ fn a_stream_that_breaks_or_a_file_cut_short() {
     let plan = common::nanotrack_plan(tmp.path());
     let video = tmp.path().join("long.mkv");
     let (w, h, n) = (320, 240, 300);
-    encode(&video, w, h, (0..n).map(|i| (0..w * h * 3).map(|k| ((k / 3 % w + 2 * i) % 256) as u8).collect()));
+    encode(&video, w, h, stripes(w, h, n));
     let s = |p: &Path| p.to_str().unwrap().to_string();
     let args = |v: &Path| {
         ["track", "--plan", &s(&plan), "--video", &s(v), "--init", "100,80,60,50", "--jsonl"].map(String::from)

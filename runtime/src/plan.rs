@@ -270,22 +270,15 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             info.outputs.len()
         )));
     }
-    for (i, t) in info.inputs.iter().enumerate() {
-        let fact = model.input_fact(i).map_err(tract_err)?;
-        if fact.shape.as_concrete() != Some(&t.shape[..]) {
-            return Err(bad(format!(
-                "input `{}` has shape {:?} in the graph, {:?} in the manifest",
-                t.name, fact.shape, t.shape
-            )));
-        }
-    }
     // The tracker indexes the outputs by the manifest's shapes (checked against its settings):
-    // a graph that gives other shapes is refused here, not found out mid-track.
-    for (i, t) in info.outputs.iter().enumerate() {
-        let fact = model.output_fact(i).map_err(tract_err)?;
+    // a graph that takes or gives other shapes is refused here, not found out mid-track.
+    let inputs = info.inputs.iter().enumerate().map(|(i, t)| ("input", t, model.input_fact(i)));
+    let outputs = info.outputs.iter().enumerate().map(|(i, t)| ("output", t, model.output_fact(i)));
+    for (what, t, fact) in inputs.chain(outputs) {
+        let fact = fact.map_err(tract_err)?;
         if fact.shape.as_concrete() != Some(&t.shape[..]) {
             return Err(bad(format!(
-                "output `{}` has shape {:?} in the graph, {:?} in the manifest",
+                "{what} `{}` has shape {:?} in the graph, {:?} in the manifest",
                 t.name, fact.shape, t.shape
             )));
         }
