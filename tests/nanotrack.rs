@@ -157,6 +157,26 @@ fn cli_imports_compiles_and_tracks() {
     ]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("the model is a nanotrack"));
+    // Settings files with NaN (TOML has it), a zero stride, or no such file: one line each,
+    // naming the file, and no plan written.
+    let own = std::fs::read_to_string(common::nanotrack_dir().join("tracker.toml")).unwrap();
+    let fresh = tmp.path().join("never-written");
+    for (edit, says) in [
+        (own.replace("penalty_k = 0.15", "penalty_k = nan"), "must be finite numbers"),
+        (own.replace("stride = 16", "stride = 0"), "between 1 and 4096"),
+        (String::new(), "No such file"),
+    ] {
+        let toml = tmp.path().join("bad-tracker.toml");
+        let _ = std::fs::remove_file(&toml);
+        if !edit.is_empty() {
+            std::fs::write(&toml, &edit).unwrap();
+        }
+        let o = common::prl(&["compile", "--model", &s(&model), "--tracker", &s(&toml), "--out", &s(&fresh)]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.trim().lines().count() == 1, "{err}");
+        assert!(err.contains("bad-tracker.toml") && err.contains(says), "{err}");
+        assert!(!fresh.exists());
+    }
 }
 
 /// A plan's recorded inputs and outputs (`prl bench --save-tensors`) replay to the same outputs

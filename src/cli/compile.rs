@@ -36,15 +36,15 @@ pub struct CompileArgs {
 
 /// Tracker settings from `path`; the official ones when the default file is absent.
 pub fn tracker_config(path: &Path) -> anyhow::Result<TrackerConfig> {
-    match std::fs::read_to_string(path) {
+    match prl_track::read_text_bounded(path, 1 << 20, "a tracker settings file") {
         Ok(text) => {
             let t: TrackerConfig =
                 toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
             t.check().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
             Ok(t)
         }
-        Err(_) if path == Path::new(DEFAULT_TRACKER_TOML) => Ok(TrackerConfig::default()),
-        Err(e) => Err(anyhow::anyhow!("{}: {e}", path.display())),
+        Err(_) if path == Path::new(DEFAULT_TRACKER_TOML) && !path.exists() => Ok(TrackerConfig::default()),
+        Err(e) => Err(e.into()),
     }
 }
 
