@@ -126,14 +126,12 @@ pub fn soak(
         tracker.track(&f).map_err(|source| TrackError::Tracker { label: path.display().to_string(), source })?;
         window.push(t.elapsed().as_secs_f64() * 1e3);
         if (i + 1) % every == 0 || i + 1 == total {
-            window.sort_by(f64::total_cmp);
             let s = SoakSample {
                 frame: i + 1,
                 rss_mb: resident_mb().unwrap_or(f64::NAN),
                 fds: open_fds().unwrap_or(0),
-                median_ms: window[window.len() / 2],
+                median_ms: median(std::mem::take(&mut window)),
             };
-            window.clear();
             on_sample(&s);
             samples.push(s);
         }
