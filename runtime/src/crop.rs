@@ -1,11 +1,15 @@
 //! The official `get_subwindow`: a square crop around a centre, padded with the sequence's
 //! channel average, resized to the network's input size, as float NCHW BGR.
 
-use crate::{resize_linear_u8, Frame};
+use crate::resize::resize_linear_u8_rows;
+use crate::Frame;
 
 /// Cut the `original_sz`x`original_sz` window centred on `center` out of `frame` (padding outside
 /// with `avg`, truncated to u8 as numpy stores it) and resize it to `model_sz`x`model_sz` (no
 /// resize when equal). Returns interleaved BGR bytes, `model_sz` rows.
+///
+/// The padded window is never built: the resize asks for the source rows it samples and each is
+/// made on demand, so a large window (a large target) costs one row of memory, not the window.
 pub fn get_subwindow(frame: &Frame, center: (f64, f64), model_sz: usize, original_sz: usize, avg: [f64; 3]) -> Vec<u8> {
     let sz = original_sz as i64;
     let c = (original_sz as f64 + 1.0) / 2.0;
@@ -14,21 +18,30 @@ pub fn get_subwindow(frame: &Frame, center: (f64, f64), model_sz: usize, origina
     let (w, h) = (frame.width() as i64, frame.height() as i64);
     let pad = avg.map(|v| v as u8);
     let src = frame.bgr();
-    let mut patch = Vec::with_capacity(original_sz * original_sz * 3);
-    for y in ymin..ymin + sz {
-        for x in xmin..xmin + sz {
-            if (0..w).contains(&x) && (0..h).contains(&y) {
-                let at = ((y * w + x) * 3) as usize;
-                patch.extend_from_slice(&src[at..at + 3]);
-            } else {
-                patch.extend_from_slice(&pad);
+    // Row `y` of the window: padding, the frame's pixels where the window overlaps it, padding.
+    let (x0, x1) = (xmin.clamp(0, w), (xmin + sz).clamp(0, w));
+    let fill_row = |y: usize, row: &mut [u8]| {
+        let fy = ymin + y as i64;
+        let (lo, hi) =
+            if (0..h).contains(&fy) && x0 < x1 { ((x0 - xmin) as usize, (x1 - xmin) as usize) } else { (0, 0) };
+        for (i, p) in row.chunks_exact_mut(3).enumerate() {
+            if !(lo..hi).contains(&i) {
+                p.copy_from_slice(&pad);
             }
         }
-    }
+        if lo < hi {
+            let at = ((fy * w + x0) * 3) as usize;
+            row[lo * 3..hi * 3].copy_from_slice(&src[at..at + (hi - lo) * 3]);
+        }
+    };
     if model_sz == original_sz {
+        let mut patch = vec![0u8; original_sz * original_sz * 3];
+        for (y, row) in patch.chunks_exact_mut((original_sz * 3).max(1)).enumerate() {
+            fill_row(y, row);
+        }
         patch
     } else {
-        resize_linear_u8(&patch, original_sz, original_sz, 3, model_sz, model_sz)
+        resize_linear_u8_rows(original_sz, original_sz, 3, model_sz, model_sz, fill_row)
     }
 }
 
@@ -42,4 +55,60 @@ pub fn crop_to_tensor(crop: &[u8], side: usize) -> Vec<f32> {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::resize_linear_u8;
+
+    /// The official form: the whole padded window built, then resized.
+    fn materialised(frame: &Frame, center: (f64, f64), model_sz: usize, original_sz: usize, avg: [f64; 3]) -> Vec<u8> {
+        let sz = original_sz as i64;
+        let c = (original_sz as f64 + 1.0) / 2.0;
+        let xmin = (center.0 - c + 0.5).floor() as i64;
+        let ymin = (center.1 - c + 0.5).floor() as i64;
+        let (w, h) = (frame.width() as i64, frame.height() as i64);
+        let mut patch = vec![];
+        for y in ymin..ymin + sz {
+            for x in xmin..xmin + sz {
+                if (0..w).contains(&x) && (0..h).contains(&y) {
+                    let at = ((y * w + x) * 3) as usize;
+                    patch.extend_from_slice(&frame.bgr()[at..at + 3]);
+                } else {
+                    patch.extend_from_slice(&avg.map(|v| v as u8));
+                }
+            }
+        }
+        if model_sz == original_sz {
+            patch
+        } else {
+            resize_linear_u8(&patch, original_sz, original_sz, 3, model_sz, model_sz)
+        }
+    }
+
+    #[test]
+    fn equals_the_materialised_window() {
+        let (w, h) = (64usize, 40usize);
+        let bgr: Vec<u8> = (0..w * h * 3).map(|i| ((i * 7919 + i / 11) % 256) as u8).collect();
+        let frame = Frame::from_bgr(w, h, bgr).expect("frame");
+        let avg = [17.9, 128.2, 250.7];
+        // Inside, across each border, around a corner, wholly outside, larger than the frame,
+        // and the no-resize case.
+        for (center, model, original) in [
+            ((32.0, 20.0), 17, 21),
+            ((2.0, 20.0), 31, 25),
+            ((62.5, 39.0), 31, 25),
+            ((0.0, 0.0), 15, 40),
+            ((-100.0, 300.0), 9, 30),
+            ((30.0, 18.0), 127, 301),
+            ((10.0, 30.0), 23, 23),
+        ] {
+            assert_eq!(
+                get_subwindow(&frame, center, model, original, avg),
+                materialised(&frame, center, model, original, avg),
+                "centre {center:?}, {original} -> {model}"
+            );
+        }
+    }
 }

@@ -54,5 +54,5 @@ pub use ops::{
 pub use plan::{set_threads, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
 pub use recording::{record, replay, TensorMatch, RECORDING_INDEX};
-pub use resize::resize_linear_u8;
+pub use resize::{resize_linear_u8, resize_linear_u8_rows};
 pub use tracker::{BBox, Prediction, StepTimings, Tracker};

@@ -47,6 +47,21 @@ fn taps(src: usize, dst: usize, clamp_weights: bool) -> Taps {
 /// as `cv2.resize(img, (dw, dh))` does.
 pub fn resize_linear_u8(src: &[u8], sw: usize, sh: usize, channels: usize, dw: usize, dh: usize) -> Vec<u8> {
     assert_eq!(src.len(), sw * sh * channels, "source buffer size");
+    let row_len = sw * channels;
+    resize_linear_u8_rows(sw, sh, channels, dw, dh, |y, row| row.copy_from_slice(&src[y * row_len..(y + 1) * row_len]))
+}
+
+/// [`resize_linear_u8`] of an image that is never materialised: `fill_row(y, row)` writes source
+/// row `y` (`sw * channels` bytes) when the resize needs it. Only the rows the output samples
+/// are asked for (at most two per output row), so memory is one source row, not the image.
+pub fn resize_linear_u8_rows(
+    sw: usize,
+    sh: usize,
+    channels: usize,
+    dw: usize,
+    dh: usize,
+    mut fill_row: impl FnMut(usize, &mut [u8]),
+) -> Vec<u8> {
     let tx = taps(sw, dw, true);
     let ty = taps(sh, dh, false);
     let row_len = dw * channels;
@@ -57,11 +72,12 @@ pub fn resize_linear_u8(src: &[u8], sw: usize, sh: usize, channels: usize, dw: u
         .zip(&tx.w)
         .flat_map(|(i, w)| (0..channels).map(move |c| ([i[0] * channels + c, i[1] * channels + c], *w)))
         .unzip();
+    let mut src_row = vec![0u8; sw * channels];
     // Horizontal pass for one source row, cached since consecutive output rows share rows.
-    let hrow = |y: usize, out: &mut [i32]| {
-        let row = &src[y * sw * channels..(y + 1) * sw * channels];
+    let mut hrow = |y: usize, out: &mut [i32]| {
+        fill_row(y, &mut src_row);
         for ((o, off), w) in out.iter_mut().zip(&offs).zip(&ws) {
-            *o = row[off[0]] as i32 * w[0] + row[off[1]] as i32 * w[1];
+            *o = src_row[off[0]] as i32 * w[0] + src_row[off[1]] as i32 * w[1];
         }
     };
     let mut cache: [(usize, Vec<i32>); 2] = [(usize::MAX, vec![0; row_len]), (usize::MAX, vec![0; row_len])];
