@@ -87,6 +87,15 @@ fn import_errors_name_the_file_and_the_problem() {
     std::fs::write(&orphan, &bytes).unwrap();
     let e = import_err(&backbone, &orphan, None);
     assert!(e.starts_with(&orphan.display().to_string()) && e.contains("made by no node"), "{e}");
+    // Two inputs of one name (fuzzing found the importer panicking on it): one line.
+    let twice = tmp.path().join("twice.onnx");
+    let mut bytes = std::fs::read(&head).unwrap();
+    while let Some(at) = bytes.windows(6).position(|w| w == b"input1") {
+        bytes[at + 5] = b'2';
+    }
+    std::fs::write(&twice, &bytes).unwrap();
+    let e = import_err(&backbone, &twice, None);
+    assert!(e.starts_with(&twice.display().to_string()) && e.contains("`input2` is made twice"), "{e}");
     // NaN weights (8 bytes of 0xff in the middle of the backbone's weights hold at least one
     // whole NaN float): refused, naming the weight.
     let nan = tmp.path().join("nan.onnx");

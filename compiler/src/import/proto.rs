@@ -66,6 +66,28 @@ impl Onnx {
         if let Some(n) = g.node.iter().find(|n| n.attribute.iter().any(|a| a.g.is_some() || !a.graphs.is_empty())) {
             return Err(graph_err(&path, format!("node `{}` ({}) holds a subgraph; not supported", n.name, n.op_type)));
         }
+        // Every value has one name and one maker: graph inputs, initializers and node outputs
+        // are distinct (an input listed twice, or a value two nodes make, cannot be renamed or
+        // wired unambiguously), and so are the graph's outputs. An initializer may also be
+        // listed as an input (ONNX's overridable constant); that is not a second maker.
+        let mut makers: HashSet<&str> = HashSet::new();
+        let inits: HashSet<&str> = g.initializer.iter().map(|t| t.name.as_str()).collect();
+        let inputs = g.input.iter().map(|v| v.name.as_str()).filter(|n| !inits.contains(n));
+        let outputs = g.node.iter().flat_map(|n| n.output.iter().map(String::as_str)).filter(|n| !n.is_empty());
+        if let Some(dup) =
+            inputs.chain(g.initializer.iter().map(|t| t.name.as_str())).chain(outputs).find(|n| !makers.insert(n))
+        {
+            return Err(graph_err(
+                &path,
+                format!(
+                    "value `{dup}` is made twice (listed twice as an input or initializer, or the output of two nodes)"
+                ),
+            ));
+        }
+        let mut seen = HashSet::new();
+        if let Some(dup) = g.output.iter().find(|o| !seen.insert(o.name.as_str())) {
+            return Err(graph_err(&path, format!("graph output `{}` is listed twice", dup.name)));
+        }
         // Every graph output must be a value the graph makes (tract indexes them unchecked).
         let made: HashSet<&str> = (g.node.iter().flat_map(|n| n.output.iter().map(String::as_str)))
             .chain(g.input.iter().map(|v| v.name.as_str()))
