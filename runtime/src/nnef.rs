@@ -8,8 +8,14 @@ use tract_nnef::ser::ints;
 use tract_nnef::tract_core::ops::element_wise::ElementWiseOp;
 use tract_nnef::tract_core::ops::quant::{DequantizeLinearF32, LookupTable, QuantizeLinearU8};
 
-/// tract's NNEF operators plus the `prl` registry.
-pub fn nnef() -> Nnef {
+/// tract's NNEF operators plus the `prl` registry, made once per process: making it parses
+/// tract's NNEF standard library, which took longer than reading a small plan's graph.
+pub fn nnef() -> &'static Nnef {
+    static NNEF: std::sync::OnceLock<Nnef> = std::sync::OnceLock::new();
+    NNEF.get_or_init(framework)
+}
+
+fn framework() -> Nnef {
     let mut prl = Registry::new("prl");
     prl.register_unit_element_wise("prl_gelu_exact", &tract_nnef::tract_core::ops::nn::GeluExact {});
     prl.register_element_wise(
