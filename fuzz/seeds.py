@@ -3,8 +3,10 @@ repository): `python3 fuzz/seeds.py SHARED OUT PLAN_DIR` writes OUT/<target>/<se
 
 Seeds are kept small (libFuzzer mutates faster on small inputs): a torch-style archive written
 by Python's own pickler, the golden checkpoint's real data.pkl, shrunken frames, the first lines
-of real annotation files, a pysot JSON of a real sequence, the shipped NanoTrack ONNX files and a
-compiled plan's manifest and graph.
+of real annotation files, a pysot JSON of a real sequence, the smallest ONNX backbone and head
+that fit NanoTrack's contract (also written to OUT/tiny/) beside the shipped NanoTrack files,
+and the manifest and search graph of PLAN_DIR, the plan compiled from that tiny pair (`-`: no
+plan seeds yet).
 """
 import collections
 import io
@@ -147,16 +149,101 @@ for ext in ["jpg", "png", "bmp", "webp"]:
     if ext == "jpg":
         put("frame", "cut.jpg", data[: len(data) // 2])
 
-# ONNX: the shipped NanoTrack files, each as the one the input replaces (first byte 0: backbone,
-# 1: head).
-nano = os.path.join(shared, "models/nanotrack-v2")
-for which, name in [(0, "nanotrack_backbone_sim.onnx"), (1, "nanotrack_head_sim.onnx")]:
-    with open(os.path.join(nano, name), "rb") as f:
-        put("onnx_import", name, bytes([which]) + f.read())
+# ONNX. A hand-written protobuf encoder (no `onnx` package needed) for the smallest pair that
+# fits NanoTrack's contract: a backbone of one 1x1 convolution at stride 16 (255 -> 16, 127 -> 8,
+# 48 channels) and a head that adds the template's mean to the search features and gives cls
+# (2 channels) and loc (4) by 1x1 convolutions. libFuzzer mutates these a thousand times faster
+# than the shipped files, which are seeds too.
+def varint(v):
+    out = b""
+    v &= (1 << 64) - 1
+    while True:
+        b, v = v & 0x7F, v >> 7
+        out += bytes([b | (0x80 if v else 0)])
+        if not v:
+            return out
 
-# The plan: its manifest (first byte 0) and its search graph (first byte 1).
-with open(os.path.join(plan_dir, "plan.json"), "rb") as f:
-    manifest = f.read()
-put("plan", "plan.json", b"\x00" + manifest)
-with open(os.path.join(plan_dir, json.loads(manifest)["search"]["file"]), "rb") as f:
-    put("plan", "search-graph", b"\x01" + f.read())
+
+def field(num, value):
+    if isinstance(value, int):
+        return varint(num << 3) + varint(value)
+    if isinstance(value, str):
+        value = value.encode()
+    return varint(num << 3 | 2) + varint(len(value)) + value
+
+
+def value_info(name, dims):
+    shape = b"".join(field(1, field(1, d)) for d in dims)
+    return field(1, name) + field(2, field(1, field(1, 1) + field(2, shape)))
+
+
+def initializer(name, dims, seed):
+    n = 1
+    for d in dims:
+        n *= d
+    data = struct.pack(f"<{n}f", *[((i * 37 + seed) % 17 - 8) / 64 for i in range(n)])
+    return b"".join(field(1, d) for d in dims) + field(2, 1) + field(8, name) + field(9, data)
+
+
+def ints_attr(name, values):
+    return field(1, name) + b"".join(field(8, v) for v in values) + field(20, 7)
+
+
+def node(op, inputs, outputs, name, attrs=()):
+    return (b"".join(field(1, i) for i in inputs) + b"".join(field(2, o) for o in outputs)
+            + field(3, name) + field(4, op) + b"".join(field(5, a) for a in attrs))
+
+
+def model(nodes, inits, inputs, outputs):
+    graph = (b"".join(field(1, n) for n in nodes) + field(2, "tiny")
+             + b"".join(field(5, t) for t in inits)
+             + b"".join(field(11, v) for v in inputs) + b"".join(field(12, v) for v in outputs))
+    return field(1, 7) + field(2, "prl-fuzz-seeds") + field(7, graph) + field(8, field(2, 14))
+
+
+tiny_backbone = model(
+    [node("Conv", ["input", "w"], ["output"], "conv", [ints_attr("kernel_shape", [1, 1]), ints_attr("strides", [16, 16])])],
+    [initializer("w", [48, 3, 1, 1], 1)],
+    [value_info("input", [1, 3, 255, 255])],
+    [value_info("output", [1, 48, 16, 16])],
+)
+tiny_head = model(
+    [
+        node("ReduceMean", ["input1"], ["zmean"], "mean", [ints_attr("axes", [2, 3])]),
+        node("Add", ["input2", "zmean"], ["x"], "add"),
+        node("Conv", ["x", "wc"], ["output1"], "cls", [ints_attr("kernel_shape", [1, 1])]),
+        node("Conv", ["x", "wl"], ["output2"], "loc", [ints_attr("kernel_shape", [1, 1])]),
+    ],
+    [initializer("wc", [2, 48, 1, 1], 2), initializer("wl", [4, 48, 1, 1], 3)],
+    [value_info("input1", [1, 48, 8, 8]), value_info("input2", [1, 48, 16, 16])],
+    [value_info("output1", [1, 2, 16, 16]), value_info("output2", [1, 4, 16, 16])],
+)
+os.makedirs(os.path.join(out, "tiny"), exist_ok=True)
+for name, data in [("backbone.onnx", tiny_backbone), ("head.onnx", tiny_head)]:
+    with open(os.path.join(out, "tiny", name), "wb") as f:
+        f.write(data)
+
+
+# The onnx_import target's input: the backbone's length (4 bytes, little-endian), the backbone,
+# the head.
+def pair(backbone, head):
+    return struct.pack("<I", len(backbone)) + backbone + head
+
+
+put("onnx_import", "tiny-pair", pair(tiny_backbone, tiny_head))
+nano = os.path.join(shared, "models/nanotrack-v2")
+with open(os.path.join(nano, "nanotrack_backbone_sim.onnx"), "rb") as f:
+    shipped_backbone = f.read()
+with open(os.path.join(nano, "nanotrack_head_sim.onnx"), "rb") as f:
+    shipped_head = f.read()
+put("onnx_import", "tiny-backbone-shipped-head", pair(tiny_backbone, shipped_head))
+put("onnx_import", "shipped-pair", pair(shipped_backbone, shipped_head))
+
+# The plan: its manifest (first byte 0) and its search graph (first byte 1). PLAN_DIR is the
+# plan compiled from the tiny pair (scripts/fuzz.sh makes it after this script's first pass).
+if plan_dir != "-":
+    with open(os.path.join(plan_dir, "plan.json"), "rb") as f:
+        manifest = f.read()
+    put("plan", "plan.json", b"\x00" + manifest)
+    with open(os.path.join(plan_dir, json.loads(manifest)["search"]["file"]), "rb") as f:
+        put("plan", "search-graph", b"\x01" + f.read())

@@ -5,8 +5,8 @@
 #
 # Installs cargo-fuzz if missing (from crates.io; a stable toolchain: targets are built with
 # `--sanitizer none`, and fuzz/src/lib.rs caps single allocations at 1 GiB), seeds each corpus
-# from ../shared (fuzz/seeds.py; the plan target's seed plan is a NanoTrack fp32 plan compiled
-# here), runs each target for SECONDS with a 1 s hang limit and a 2 GiB memory limit, and
+# from ../shared (fuzz/seeds.py; the plan target's plan is compiled here from the tiny ONNX pair
+# seeds.py writes), runs each target for SECONDS with a 1 s hang limit and a 2 GiB memory limit, and
 # prints one line per target: executions, executions per second, corpus size and findings.
 # Findings (crash, timeout, out-of-memory inputs) are in fuzz/artifacts/<target>/; the exit
 # status is non-zero when there are any. Corpora grow in target/fuzz-corpus/ across runs.
@@ -25,19 +25,25 @@ mkdir -p "$work" "$corpus"
 command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz --locked
 command -v ffmpeg >/dev/null || { apt-get update -qq && apt-get install -y -qq ffmpeg >/dev/null; }
 
-# The seed plan: NanoTrack v2 imported from the shipped files and compiled (fp32).
-plan=${PRL_FUZZ_PLAN:-$work/nanotrack-plan}
-if [ ! -f "$plan/plan.json" ]; then
-    cargo build -q --bin prl
-    target/debug/prl import nanotrack --out "$work/nanotrack-model" >/dev/null
-    target/debug/prl compile --model "$work/nanotrack-model" --out "$plan" >/dev/null
-fi
-plan=$(cd "$plan" && pwd)
+# Seeds, then the plan target's plan: the tiny backbone and head seeds.py writes (the smallest
+# pair fitting NanoTrack's contract) imported and compiled, so that each execution loads a plan
+# of a few kilobytes. PRL_BIN=path/to/prl uses that binary instead of building one.
 if [ ! -f "$work/seeds.done" ]; then
-    rm -rf "$work/seeds"
-    python3 fuzz/seeds.py "$shared" "$work/seeds" "$plan"
+    if [ -n "${PRL_BIN:-}" ]; then
+        prl=$PRL_BIN
+    else
+        cargo build -q --bin prl
+        prl=target/debug/prl
+    fi
+    rm -rf "$work/seeds" "$work/tiny-model" "$work/tiny-plan"
+    python3 fuzz/seeds.py "$shared" "$work/seeds" -
+    $prl import nanotrack --backbone "$work/seeds/tiny/backbone.onnx" --head "$work/seeds/tiny/head.onnx" \
+        --out "$work/tiny-model" >/dev/null
+    $prl compile --model "$work/tiny-model" --out "$work/tiny-plan" >/dev/null
+    python3 fuzz/seeds.py "$shared" "$work/seeds" "$work/tiny-plan"
     touch "$work/seeds.done"
 fi
+plan=$(cd "$work/tiny-plan" && pwd)
 
 cargo fuzz build -s none
 
