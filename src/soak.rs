@@ -16,8 +16,12 @@ use crate::{read_frame, Damaged};
 pub struct SoakSample {
     /// Frames tracked so far.
     pub frame: usize,
-    /// Resident memory of the process, MB.
+    /// Resident memory of the process, MB, once the allocator has handed back the pages it
+    /// keeps after a free (the memory in use): what is judged.
     pub rss_mb: f64,
+    /// Resident memory as the sample found it, MB (what `top` shows): also freed pages the
+    /// allocator has not yet returned (mimalloc returns them a second after the free).
+    pub rss_held_mb: f64,
     /// Open file descriptors of the process.
     pub fds: usize,
     /// Median ms per frame (decode and track) since the previous sample.
@@ -32,10 +36,9 @@ pub struct SoakReport {
     /// Samples before this one are warm-up (allocators and caches settle in the first thousand
     /// or so frames).
     pub warm: usize,
-    /// Growth of resident memory after warm-up: the peak of the later half of the samples over
-    /// the peak of the earlier half, minus 1 (0.01: 1%). Peaks, because the allocator hands
-    /// freed frame buffers back to the OS now and then (a swing of a frame's size or two); a
-    /// leak raises the later peak.
+    /// Growth of resident memory in use after warm-up: the peak of the later half of the
+    /// samples over the peak of the earlier half, minus 1 (0.01: 1%); a leak raises the later
+    /// peak.
     pub rss_growth: f64,
     /// Lowest and highest resident memory after warm-up, MB.
     pub rss_range: (f64, f64),
@@ -102,6 +105,9 @@ fn ping_pong(i: usize, n: usize) -> usize {
 
 /// Track `total` frames of `frames` looped, from `init` on the first, sampling every `every`
 /// frames, the first `warm_up` frames not judged; `on_sample` sees each sample as it is taken.
+/// `release_freed` asks the process's allocator to return freed pages to the OS (the binary
+/// knows which allocator it links); it is called between the two readings of each sample.
+#[allow(clippy::too_many_arguments)]
 pub fn soak(
     tracker: &mut Tracker,
     frames: &[PathBuf],
@@ -109,6 +115,7 @@ pub fn soak(
     total: usize,
     every: usize,
     warm_up: usize,
+    mut release_freed: impl FnMut(),
     mut on_sample: impl FnMut(&SoakSample),
 ) -> Result<SoakReport, TrackError> {
     let every = every.max(1);
@@ -126,9 +133,12 @@ pub fn soak(
         tracker.track(&f).map_err(|source| TrackError::Tracker { label: path.display().to_string(), source })?;
         window.push(t.elapsed().as_secs_f64() * 1e3);
         if (i + 1) % every == 0 || i + 1 == total {
+            let rss_held_mb = resident_mb().unwrap_or(f64::NAN);
+            release_freed();
             let s = SoakSample {
                 frame: i + 1,
                 rss_mb: resident_mb().unwrap_or(f64::NAN),
+                rss_held_mb,
                 fds: open_fds().unwrap_or(0),
                 median_ms: median(std::mem::take(&mut window)),
             };
@@ -171,7 +181,7 @@ mod tests {
 
     #[test]
     fn growth_is_measured_after_warm_up() {
-        let s = |frame, rss_mb, fds| SoakSample { frame, rss_mb, fds, median_ms: 10.0 };
+        let s = |frame, rss_mb, fds| SoakSample { frame, rss_mb, rss_held_mb: rss_mb, fds, median_ms: 10.0 };
         let mut v = vec![s(1, 50.0, 5)];
         // A swing of a few MB either way after warm-up is not growth.
         v.extend((2..12).map(|i| s(i, if i % 3 == 0 { 103.0 } else { 100.0 + i as f64 * 0.01 }, 5)));

@@ -49,11 +49,15 @@ pub fn run(a: SoakArgs) -> anyhow::Result<()> {
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config);
     println!("soak: {} on {} ({} frames, looped), {} frames", a.plan.display(), seq.name, seq.frames.len(), a.frames);
-    println!("{:>9} {:>9} {:>5} {:>10}", "frame", "RSS MB", "fds", "median ms");
+    println!("{:>9} {:>9} {:>9} {:>5} {:>10}", "frame", "RSS MB", "held MB", "fds", "median ms");
     let warm_up = a.warm_up.unwrap_or((a.frames / 10).max(1000));
     let init = init_box_from_groundtruth(gt[0]);
-    let report = soak::soak(&mut tracker, &seq.frames, init, a.frames, a.every, warm_up, |s| {
-        println!("{:>9} {:>9.1} {:>5} {:>10.2}", s.frame, s.rss_mb, s.fds, s.median_ms)
+    // The binary's allocator is mimalloc (main.rs), which keeps freed pages for a second
+    // before returning them: a sample would catch a varying part of a frame's transient buffers.
+    // SAFETY: mi_collect takes no pointers and may be called at any time from any thread.
+    let release_freed = || unsafe { libmimalloc_sys::mi_collect(true) };
+    let report = soak::soak(&mut tracker, &seq.frames, init, a.frames, a.every, warm_up, release_freed, |s| {
+        println!("{:>9} {:>9.1} {:>9.1} {:>5} {:>10.2}", s.frame, s.rss_mb, s.rss_held_mb, s.fds, s.median_ms)
     })?;
     let holds = report.holds(soak::SoakLimits { rss: a.rss_tolerance, time: a.time_tolerance });
     println!(
