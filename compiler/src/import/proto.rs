@@ -84,17 +84,16 @@ impl Onnx {
                 ),
             ));
         }
+        // Every graph output is listed once and is a value the graph makes (tract indexes
+        // them unchecked).
         let mut seen = HashSet::new();
-        if let Some(dup) = g.output.iter().find(|o| !seen.insert(o.name.as_str())) {
-            return Err(graph_err(&path, format!("graph output `{}` is listed twice", dup.name)));
-        }
-        // Every graph output must be a value the graph makes (tract indexes them unchecked).
-        let made: HashSet<&str> = (g.node.iter().flat_map(|n| n.output.iter().map(String::as_str)))
-            .chain(g.input.iter().map(|v| v.name.as_str()))
-            .chain(g.initializer.iter().map(|t| t.name.as_str()))
-            .collect();
-        if let Some(o) = g.output.iter().find(|o| !made.contains(o.name.as_str())) {
-            return Err(graph_err(&path, format!("graph output `{}` is made by no node", o.name)));
+        for o in &g.output {
+            if !seen.insert(o.name.as_str()) {
+                return Err(graph_err(&path, format!("graph output `{}` is listed twice", o.name)));
+            }
+            if !makers.contains(o.name.as_str()) {
+                return Err(graph_err(&path, format!("graph output `{}` is made by no node", o.name)));
+            }
         }
         // A NaN weight makes every output NaN: a corrupt or diverged model, refused by name.
         // (Infinities pass: exporters use them for open clip bounds and masks.)
