@@ -23,15 +23,15 @@ pub fn get_subwindow(frame: &Frame, center: (f64, f64), model_sz: usize, origina
     let fill_row = |y: usize, row: &mut [u8]| {
         let fy = ymin + y as i64;
         let (lo, hi) =
-            if (0..h).contains(&fy) && x0 < x1 { ((x0 - xmin) as usize, (x1 - xmin) as usize) } else { (0, 0) };
-        for (i, p) in row.chunks_exact_mut(3).enumerate() {
-            if !(lo..hi).contains(&i) {
-                p.copy_from_slice(&pad);
-            }
-        }
+            if (0..h).contains(&fy) && x0 < x1 { ((x0 - xmin) as usize * 3, (x1 - xmin) as usize * 3) } else { (0, 0) };
+        let (left, rest) = row.split_at_mut(lo);
+        let (inside, right) = rest.split_at_mut(hi - lo);
         if lo < hi {
             let at = ((fy * w + x0) * 3) as usize;
-            row[lo * 3..hi * 3].copy_from_slice(&src[at..at + (hi - lo) * 3]);
+            inside.copy_from_slice(&src[at..at + (hi - lo)]);
+        }
+        for p in left.chunks_exact_mut(3).chain(right.chunks_exact_mut(3)) {
+            p.copy_from_slice(&pad);
         }
     };
     if model_sz == original_sz {
