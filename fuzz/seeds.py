@@ -1,12 +1,12 @@
 """Seed corpora for the fuzz targets, made from the shared fixtures (nothing is copied into the
-repository): `python3 fuzz/seeds.py SHARED OUT PLAN_DIR` writes OUT/<target>/<seed> files.
+repository): `python3 fuzz/seeds.py SHARED OUT PRL` writes OUT/<target>/<seed> files.
 
 Seeds are kept small (libFuzzer mutates faster on small inputs): a torch-style archive written
 by Python's own pickler, the golden checkpoint's real data.pkl, shrunken frames, the first lines
 of real annotation files, a pysot JSON of a real sequence, the smallest ONNX backbone and head
 that fit NanoTrack's contract (also written to OUT/tiny/) beside the shipped NanoTrack files,
-and the manifest and search graph of PLAN_DIR, the plan compiled from that tiny pair (`-`: no
-plan seeds yet).
+and the manifest and search graph of the plan compiled from that tiny pair by PRL (the `prl`
+binary) into OUT/tiny/plan, which the plan target loads beside its input.
 """
 import collections
 import io
@@ -19,7 +19,7 @@ import sys
 import types
 import zipfile
 
-shared, out, plan_dir = sys.argv[1], sys.argv[2], sys.argv[3]
+shared, out, prl = sys.argv[1], sys.argv[2], sys.argv[3]
 
 
 def put(target, name, data):
@@ -218,9 +218,10 @@ tiny_head = model(
     [value_info("input1", [1, 48, 8, 8]), value_info("input2", [1, 48, 16, 16])],
     [value_info("output1", [1, 2, 16, 16]), value_info("output2", [1, 4, 16, 16])],
 )
-os.makedirs(os.path.join(out, "tiny"), exist_ok=True)
+tiny = os.path.join(out, "tiny")
+os.makedirs(tiny, exist_ok=True)
 for name, data in [("backbone.onnx", tiny_backbone), ("head.onnx", tiny_head)]:
-    with open(os.path.join(out, "tiny", name), "wb") as f:
+    with open(os.path.join(tiny, name), "wb") as f:
         f.write(data)
 
 
@@ -239,11 +240,17 @@ with open(os.path.join(nano, "nanotrack_head_sim.onnx"), "rb") as f:
 put("onnx_import", "tiny-backbone-shipped-head", pair(tiny_backbone, shipped_head))
 put("onnx_import", "shipped-pair", pair(shipped_backbone, shipped_head))
 
-# The plan: its manifest (first byte 0) and its search graph (first byte 1). PLAN_DIR is the
-# plan compiled from the tiny pair (scripts/fuzz.sh makes it after this script's first pass).
-if plan_dir != "-":
-    with open(os.path.join(plan_dir, "plan.json"), "rb") as f:
-        manifest = f.read()
-    put("plan", "plan.json", b"\x00" + manifest)
-    with open(os.path.join(plan_dir, json.loads(manifest)["search"]["file"]), "rb") as f:
-        put("plan", "search-graph", b"\x01" + f.read())
+# The plan: the tiny pair imported and compiled; its manifest (first byte 0) and its search graph
+# (first byte 1).
+plan_dir = os.path.join(tiny, "plan")
+for args in [
+    ["import", "nanotrack", "--backbone", os.path.join(tiny, "backbone.onnx"), "--head", os.path.join(tiny, "head.onnx"),
+     "--out", os.path.join(tiny, "model")],
+    ["compile", "--model", os.path.join(tiny, "model"), "--out", plan_dir],
+]:
+    subprocess.run([prl] + args, check=True, stdout=subprocess.DEVNULL)
+with open(os.path.join(plan_dir, "plan.json"), "rb") as f:
+    manifest = f.read()
+put("plan", "plan.json", b"\x00" + manifest)
+with open(os.path.join(plan_dir, json.loads(manifest)["search"]["file"]), "rb") as f:
+    put("plan", "search-graph", b"\x01" + f.read())

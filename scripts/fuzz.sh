@@ -2,12 +2,14 @@
 # Fuzz every parser of files a user or a model supplies (cargo fuzz / libFuzzer, see fuzz/).
 #
 #   bash scripts/fuzz.sh [SECONDS] [TARGET...]     # default: 60 s for each of the targets
+#   PRL_FUZZ_RUNS=10000000 bash scripts/fuzz.sh 86400 checkpoint   # stop at 10M executions
 #
 # Installs cargo-fuzz if missing (from crates.io; a stable toolchain: targets are built with
 # `--sanitizer none`, and fuzz/src/lib.rs caps single allocations at 1 GiB), seeds each corpus
-# from ../shared (fuzz/seeds.py; the plan target's plan is compiled here from the tiny ONNX pair
-# seeds.py writes), runs each target for SECONDS with a 1 s hang limit and a 2 GiB memory limit, and
-# prints one line per target: executions, executions per second, corpus size and findings.
+# from ../shared (fuzz/seeds.py; the plan target's plan is compiled there from the tiny ONNX
+# pair it writes), runs each target for SECONDS with a 1 s hang limit and a 2 GiB memory limit, and
+# prints one line per target: seconds taken, executions, executions per second, corpus size and
+# findings. PRL_FUZZ_RUNS=N stops a target after N executions (or SECONDS, whichever is first).
 # Findings (crash, timeout, out-of-memory inputs) are in fuzz/artifacts/<target>/; the exit
 # status is non-zero when there are any. Corpora grow in target/fuzz-corpus/ across runs.
 set -euo pipefail
@@ -25,25 +27,22 @@ mkdir -p "$work" "$corpus"
 command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz --locked
 command -v ffmpeg >/dev/null || { apt-get update -qq && apt-get install -y -qq ffmpeg >/dev/null; }
 
-# Seeds, then the plan target's plan: the tiny backbone and head seeds.py writes (the smallest
-# pair fitting NanoTrack's contract) imported and compiled, so that each execution loads a plan
-# of a few kilobytes. PRL_BIN=path/to/prl uses that binary instead of building one.
-if [ ! -f "$work/seeds.done" ]; then
+# Seeds, and the plan target's plan: the tiny backbone and head seeds.py writes (the smallest
+# pair fitting NanoTrack's contract), imported and compiled by seeds.py with prl, so that each
+# execution loads a plan of a few kilobytes. PRL_BIN=path/to/prl uses that binary instead of
+# building one.
+if [ ! -f "$work/seeds.done" ] || [ ! -d "$work/seeds/tiny/plan" ]; then
     if [ -n "${PRL_BIN:-}" ]; then
         prl=$PRL_BIN
     else
         cargo build -q --bin prl
         prl=target/debug/prl
     fi
-    rm -rf "$work/seeds" "$work/tiny-model" "$work/tiny-plan"
-    python3 fuzz/seeds.py "$shared" "$work/seeds" -
-    $prl import nanotrack --backbone "$work/seeds/tiny/backbone.onnx" --head "$work/seeds/tiny/head.onnx" \
-        --out "$work/tiny-model" >/dev/null
-    $prl compile --model "$work/tiny-model" --out "$work/tiny-plan" >/dev/null
-    python3 fuzz/seeds.py "$shared" "$work/seeds" "$work/tiny-plan"
+    rm -rf "$work/seeds"
+    python3 fuzz/seeds.py "$shared" "$work/seeds" "$prl"
     touch "$work/seeds.done"
 fi
-plan=$(cd "$work/tiny-plan" && pwd)
+plan=$(cd "$work/seeds/tiny/plan" && pwd)
 
 cargo fuzz build -s none
 
@@ -54,9 +53,11 @@ for t in "${targets[@]}"; do
     cp -n "$work/seeds/$t"/* "$corpus/$t/" 2>/dev/null || true
     before=$(ls "fuzz/artifacts/$t" | wc -l)
     log="$work/$t.log"
+    start=$SECONDS
     PRL_FUZZ_PLAN="$plan" PRL_SHARED="$shared" cargo fuzz run -s none "$t" "$corpus/$t" -- \
-        -max_total_time="$seconds" -timeout=1 -rss_limit_mb=2048 -print_final_stats=1 \
+        -max_total_time="$seconds" ${PRL_FUZZ_RUNS:+-runs="$PRL_FUZZ_RUNS"} -timeout=1 -rss_limit_mb=2048 -print_final_stats=1 \
         -artifact_prefix="fuzz/artifacts/$t/" >"$log" 2>&1 || true
+    took=$((SECONDS - start))
     runs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$log" | grep -o '[0-9]*$' | tail -1)
     runs=${runs:-0}
     found=$(( $(ls "fuzz/artifacts/$t" | wc -l) - before ))
@@ -64,7 +65,7 @@ for t in "${targets[@]}"; do
         status=1
         grep -E 'panicked|ERROR|SUMMARY|Test unit written|allocation over' "$log" | head -5 >&2 || tail -20 "$log" >&2
     fi
-    printf '%-12s %8s %12s %10s %8s %s\n' "$t" "$seconds" "$runs" "$((runs / seconds))" \
+    printf '%-12s %8s %12s %10s %8s %s\n' "$t" "$took" "$runs" "$((runs / (took > 0 ? took : 1)))" \
         "$(ls "$corpus/$t" | wc -l)" "$found"
 done
 exit $status
