@@ -7,6 +7,7 @@ mod calibration;
 mod dataset;
 mod frames;
 mod metrics;
+pub mod occlusion;
 pub mod ope;
 mod sequence;
 pub mod soak;

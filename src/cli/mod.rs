@@ -8,6 +8,7 @@ mod compile;
 mod demo;
 mod eval;
 mod import;
+mod occlude;
 mod plots;
 mod quantize;
 mod run_benchmark;
@@ -55,6 +56,8 @@ enum Command {
     Compare(compare::CompareArgs),
     /// Track a looped sequence for a long time: memory, open files and frame time must stay flat.
     Soak(soak::SoakArgs),
+    /// Make a lost-and-found sequence from a real one: the target hidden while the view pans.
+    Occlude(occlude::OccludeArgs),
     /// Show the whole pipeline working with no input: seeded network, plan, generated video.
     Demo(demo::DemoArgs),
 }
@@ -92,6 +95,7 @@ pub fn run() -> anyhow::Result<()> {
         Command::Track(a) => track::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Soak(a) => soak::run(a),
+        Command::Occlude(a) => occlude::run(a),
         Command::Eval(a) => eval::run(a),
         Command::RunBenchmark(a) => run_benchmark::run(a),
         Command::Bench(a) => bench::run(a),
