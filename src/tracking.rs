@@ -4,7 +4,7 @@
 
 use std::time::{Duration, Instant};
 
-use prl_runtime::{BBox, Frame, Tracker};
+use prl_runtime::{BBox, Frame, Prediction, TargetState, Tracker};
 
 use crate::{iou, load_frame, read_frame, Damaged, InputError};
 
@@ -29,13 +29,17 @@ impl FrameTiming {
 }
 
 /// What a run over a sequence gave: one entry per frame, the first frame's being the init box
-/// (score 1, as pysot writes it) and its template step.
+/// (score and confidence 1, `tracking`; pysot writes score 1) and its template step.
 #[derive(Debug, Clone, Default)]
 pub struct TrackRun {
     /// The target's box per frame.
     pub boxes: Vec<BBox>,
     /// The tracker's score per frame.
     pub scores: Vec<f64>,
+    /// The tracker's confidence per frame (what its state is decided on).
+    pub confidences: Vec<f64>,
+    /// The tracker's state per frame.
+    pub states: Vec<TargetState>,
     /// Stage times per frame.
     pub timings: Vec<FrameTiming>,
     /// Wall time of the whole run.
@@ -148,16 +152,17 @@ impl<F: FnMut(usize) -> Frame> Frames for MadeFrames<F> {
     }
 }
 
-/// Track through `frames` from `init` on the first. `on_frame(i, frame, box)` sees every frame
-/// and its box as it goes (for drawing or progress); an error from it stops the run.
+/// Track through `frames` from `init` on the first. `on_frame(i, frame, prediction)` sees every
+/// frame and what the tracker said of it as it goes (for drawing, output or progress; the first
+/// frame's is the init box, score 1, `tracking`); an error from it stops the run.
 pub fn track(
     tracker: &mut Tracker,
     frames: impl Frames,
     init: BBox,
-    mut on_frame: impl FnMut(usize, &Frame, &BBox) -> Result<(), String>,
+    on_frame: impl FnMut(usize, &Frame, &Prediction) -> Result<(), String>,
 ) -> Result<TrackRun, TrackError> {
     let n = frames.len();
-    track_stream(tracker, InOrder { frames, next: 0 }, init, n, |i, f, b, _| on_frame(i, f, b))
+    track_stream(tracker, InOrder { frames, next: 0 }, init, n, on_frame)
 }
 
 /// Frames that come one after another (a video, a camera, a stream: the length need not be
@@ -189,18 +194,20 @@ impl<F: Frames> FrameStream for InOrder<F> {
 }
 
 /// Track through `frames` as they come. `expected` (how many, if known) sizes the results;
-/// `on_frame(i, frame, box, score)` sees every frame as it goes.
+/// `on_frame(i, frame, prediction)` sees every frame as it goes.
 pub fn track_stream(
     tracker: &mut Tracker,
     mut frames: impl FrameStream,
     init: BBox,
     expected: usize,
-    mut on_frame: impl FnMut(usize, &Frame, &BBox, f64) -> Result<(), String>,
+    mut on_frame: impl FnMut(usize, &Frame, &Prediction) -> Result<(), String>,
 ) -> Result<TrackRun, TrackError> {
     let start = Instant::now();
     let mut run = TrackRun {
         boxes: Vec::with_capacity(expected),
         scores: Vec::with_capacity(expected),
+        confidences: Vec::with_capacity(expected),
+        states: Vec::with_capacity(expected),
         timings: Vec::with_capacity(expected),
         total: Duration::ZERO,
     };
@@ -210,24 +217,24 @@ pub fn track_stream(
         let Some(f) = frames.next_frame()? else { break };
         let decode = t.elapsed();
         let err = |source| TrackError::Tracker { label: frames.label(), source };
-        if i == 0 {
+        let p = if i == 0 {
             size = (f.width(), f.height());
             tracker.init(&f, init).map_err(err)?;
-            run.boxes.push(init);
-            run.scores.push(1.0);
+            Prediction { bbox: init, score: 1.0, confidence: 1.0, state: TargetState::Tracking }
         } else {
             if (f.width(), f.height()) != size {
                 let (got_w, got_h) = (f.width(), f.height());
                 return Err(TrackError::Size { label: frames.label(), got_w, got_h, w: size.0, h: size.1 });
             }
-            let p = tracker.track(&f).map_err(err)?;
-            run.boxes.push(p.bbox);
-            run.scores.push(p.score);
-        }
+            tracker.track(&f).map_err(err)?
+        };
+        run.boxes.push(p.bbox);
+        run.scores.push(p.score);
+        run.confidences.push(p.confidence);
+        run.states.push(p.state);
         let s = tracker.last_timings();
         run.timings.push(FrameTiming { decode, crop: s.crop, network: s.network, post: s.post });
-        let (b, score) = (run.boxes.last().expect("pushed"), *run.scores.last().expect("pushed"));
-        on_frame(i, &f, b, score).map_err(TrackError::Hook)?;
+        on_frame(i, &f, &p).map_err(TrackError::Hook)?;
     }
     run.total = start.elapsed();
     Ok(run)

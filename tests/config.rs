@@ -1,6 +1,6 @@
 //! The tracker settings file is the official configuration, and the runtime's defaults agree.
 
-use prl_runtime::TrackerConfig;
+use prl_runtime::{StateSignal, TrackerConfig};
 
 #[test]
 fn tracker_toml_is_the_official_configuration() {
@@ -28,5 +28,27 @@ fn settings_without_the_newer_fields_read_as_prl_track() {
     let old = "exemplar_size = 127\ninstance_size = 287\ncontext_amount = 0.5\npenalty_k = 0.08\n\
                window_influence = 0.42\nlr = 0.30\nw2 = 1.0\nw3 = 1.0\nstride = 16\nscore_size = 11\n";
     let cfg: TrackerConfig = toml::from_str(old).unwrap();
-    assert_eq!(cfg, TrackerConfig::prl_track());
+    let mut expected = TrackerConfig::prl_track();
+    (expected.state_signal, expected.uncertain_below, expected.lost_below) = (None, None, None);
+    assert_eq!(cfg, expected);
+    // Nor the state rule: the family's default applies.
+    assert_eq!(cfg.state_rule(), TrackerConfig::prl_track().state_rule());
+    let nano = format!("family = \"nanotrack\"\n{old}");
+    let cfg: TrackerConfig = toml::from_str(&nano).unwrap();
+    assert_eq!(cfg.state_rule(), TrackerConfig::nanotrack().state_rule());
+}
+
+#[test]
+fn state_thresholds_are_checked() {
+    let mut cfg = TrackerConfig::nanotrack();
+    assert_eq!(cfg.state_rule(), (StateSignal::MapFocus, 0.93, 0.92));
+    assert!(cfg.check().is_ok());
+    cfg.lost_below = Some(0.95);
+    assert!(cfg.check().unwrap_err().contains("lost_below (0.95) must be a number at most uncertain_below (0.93)"));
+    cfg.lost_below = Some(f64::NAN);
+    assert!(cfg.check().is_err());
+    let text = "state_signal = \"best-score\"\n";
+    let base = toml::to_string(&TrackerConfig { state_signal: None, ..TrackerConfig::nanotrack() }).unwrap();
+    let cfg: TrackerConfig = toml::from_str(&format!("{text}{base}")).unwrap();
+    assert_eq!(cfg.state_rule().0, StateSignal::BestScore);
 }

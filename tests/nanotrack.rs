@@ -5,7 +5,8 @@ mod common;
 
 use std::path::Path;
 
-use prl_runtime::{Family, Plan, Tracker};
+use prl_runtime::{Family, Plan, TargetState, Tracker};
+use prl_track::occlusion::LostAndFound;
 use prl_track::{init_box_from_groundtruth, tracking, Sequence};
 
 fn read_boxes(path: &Path) -> Vec<[f64; 4]> {
@@ -51,9 +52,40 @@ fn fp32_plan_reproduces_the_official_tracker_on_building4() {
         .fold(0.0, f64::max);
     eprintln!("building4: {within}/{} frames within 0.5 px, worst {worst:.4} px", reference.len());
     assert!(within as f64 >= 0.99 * reference.len() as f64, "{within} of {} frames within 0.5 px", reference.len());
-    // A trained tracker really tracks: most frames overlap the ground truth.
+    // A trained tracker really tracks: most frames overlap the ground truth, and its state says
+    // so (all 263 frames `tracking` when measured).
     let miou = run.mean_iou(&gt).unwrap();
     assert!(miou > 0.5, "mean IoU with the ground truth {miou}");
+    let tracking = run.states.iter().filter(|&&s| s == TargetState::Tracking).count();
+    assert!(tracking as f64 >= 0.97 * run.states.len() as f64, "{tracking} of {} frames tracking", run.states.len());
+}
+
+#[test]
+fn the_state_tells_a_hidden_target_from_a_tracked_one() {
+    // wakeboard10 made lost-and-found: the target hidden on frames 40..70 while the view pans
+    // 240 px, so the short-term tracker stays on background afterwards (IoU 0).
+    let tmp = tempfile::tempdir().unwrap();
+    let plan_dir = common::nanotrack_plan(tmp.path());
+    let spec = LostAndFound { hide_from: 40, hide_frames: 30, pan: (240, 0), view: (960, 540) };
+    let dir = tmp.path().join("wakeboard10-lf");
+    assert_eq!(spec.make(&common::sequence("wakeboard10"), &dir).unwrap(), 157);
+    let seq = Sequence::open(&dir).unwrap();
+    let gt = seq.groundtruth.clone().unwrap();
+    assert!(gt[40..70].iter().all(|b| b[0].is_nan()) && gt[39][0].is_finite() && gt[70][0].is_finite());
+    let plan = Plan::load(&plan_dir).unwrap();
+    let config = plan.manifest().tracker.clone();
+    let mut tracker = Tracker::new(plan, config);
+    let run = tracking::track(&mut tracker, seq.frames.as_slice(), init_box_from_groundtruth(gt[0]), |_, _, _| Ok(()))
+        .unwrap();
+    let count = |r: std::ops::Range<usize>, s: TargetState| run.states[r].iter().filter(|&&x| x == s).count();
+    // Measured: frames 1..40 all tracking, 40..157 all lost.
+    assert!(count(1..40, TargetState::Tracking) >= 37, "{:?}", &run.states[1..40]);
+    assert!(count(40..70, TargetState::Lost) >= 27, "hidden: {:?}", &run.confidences[40..70]);
+    assert!(count(70..157, TargetState::Tracking) <= 5, "off target, yet: {:?}", &run.states[70..157]);
+    // The best score alone would not tell: NanoTrack's stays high on the hidden frames.
+    let mut hidden: Vec<f64> = run.scores[40..70].to_vec();
+    hidden.sort_by(f64::total_cmp);
+    assert!(hidden[15] > 0.7, "median best score on hidden frames {}", hidden[15]);
 }
 
 fn import_err(backbone: &Path, head: &Path, config: Option<&Path>) -> String {

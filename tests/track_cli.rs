@@ -53,6 +53,30 @@ fn track_a_frame_folder_and_write_results() {
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("frames: 3") && stdout.contains("network"), "{stdout}");
     assert_eq!(std::fs::read_dir(&vis).unwrap().count(), 3);
+    // --jsonl on a frame folder: standard output is one object a frame, nothing else.
+    let o = prl(&[
+        "track",
+        "--plan",
+        plan.to_str().unwrap(),
+        "--frames",
+        dir.path().to_str().unwrap(),
+        "--init",
+        "110.5,108.5,36,24",
+        "--jsonl",
+        "--threads",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let objs: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(objs.len(), 3);
+    assert_eq!((objs[0]["frame"].as_u64(), objs[2]["frame"].as_u64()), (Some(0), Some(2)));
+    assert_eq!(objs[0]["state"], "tracking");
+    for o in &objs {
+        assert!(["tracking", "uncertain", "lost"].contains(&o["state"].as_str().unwrap()), "{o}");
+        assert!(o["confidence"].as_f64().is_some() && o["box"].as_array().unwrap().len() == 4, "{o}");
+    }
+    assert!(stderr(&o).contains("frames: 3"), "the summary goes to standard error with --jsonl");
 }
 
 #[test]

@@ -117,6 +117,41 @@ pub struct TrackerConfig {
     /// window side (PRL-Track's `scaleaa` rule; NanoTrack has none).
     #[serde(default = "yes")]
     pub large_target_keeps_template_size: bool,
+    /// What a prediction's state (`tracking`, `uncertain`, `lost`) is decided on. `None` (plans
+    /// made before states existed): the family's default ([`TrackerConfig::state_rule`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub state_signal: Option<StateSignal>,
+    /// Confidence (the value of `state_signal`) below which a prediction is `uncertain` rather
+    /// than `tracking`. `None`: the family's default.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uncertain_below: Option<f64>,
+    /// Confidence below which the target is `lost`. `None`: the family's default.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lost_below: Option<f64>,
+}
+
+/// What tells a followed target from a lost one: the value a prediction's state is decided on
+/// (its `confidence`; higher is surer).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StateSignal {
+    /// The chosen cell's score (the official `best_score`). NanoTrack's stays above 0.9 on many
+    /// frames where the target is hidden: a poor signal for it (docs/lost-target.md).
+    BestScore,
+    /// One minus the mean score of the whole map: near 1 when the map has one sharp peak (the
+    /// target), lower when the response spreads over the background, as it does when the
+    /// target is hidden or the tracker has drifted off it.
+    MapFocus,
+}
+
+/// The default state rule (signal, uncertain below, lost below) of every family. NanoTrack's
+/// thresholds are calibrated on lost-and-found versions of the shared UAV123 sequences
+/// (docs/lost-target.md); PRL-Track's are NanoTrack's, not calibrated (no trained PRL-Track
+/// weights are available to this project).
+const fn default_state_rule(family: Family) -> (StateSignal, f64, f64) {
+    match family {
+        Family::PrlTrack | Family::Nanotrack => (StateSignal::MapFocus, 0.93, 0.92),
+    }
 }
 
 impl Default for TrackerConfig {
@@ -145,6 +180,9 @@ impl TrackerConfig {
             loc_scale: prl_loc_scale(),
             ratio_eps: prl_ratio_eps(),
             large_target_keeps_template_size: true,
+            state_signal: Some(default_state_rule(Family::PrlTrack).0),
+            uncertain_below: Some(default_state_rule(Family::PrlTrack).1),
+            lost_below: Some(default_state_rule(Family::PrlTrack).2),
         }
     }
 
@@ -166,6 +204,9 @@ impl TrackerConfig {
             loc_scale: 1.0,
             ratio_eps: 0.0,
             large_target_keeps_template_size: false,
+            state_signal: Some(default_state_rule(Family::Nanotrack).0),
+            uncertain_below: Some(default_state_rule(Family::Nanotrack).1),
+            lost_below: Some(default_state_rule(Family::Nanotrack).2),
         }
     }
 
@@ -175,6 +216,13 @@ impl TrackerConfig {
             Family::PrlTrack => TrackerConfig::prl_track(),
             Family::Nanotrack => TrackerConfig::nanotrack(),
         }
+    }
+
+    /// What a prediction's state is decided on, and the confidences below which it is
+    /// `uncertain` and `lost`: the settings', or the family's defaults where a plan predates them.
+    pub fn state_rule(&self) -> (StateSignal, f64, f64) {
+        let (s, u, l) = default_state_rule(self.family);
+        (self.state_signal.unwrap_or(s), self.uncertain_below.unwrap_or(u), self.lost_below.unwrap_or(l))
     }
 
     /// Settings that cannot run (zero or absurd sizes, non-finite numbers), as a message.
@@ -199,6 +247,10 @@ impl TrackerConfig {
         ];
         if reals.iter().any(|v| !v.is_finite()) {
             return Err("tracker settings must be finite numbers".into());
+        }
+        let (_, u, l) = self.state_rule();
+        if !(l.is_finite() && u.is_finite() && l <= u) {
+            return Err(format!("lost_below ({l}) must be a number at most uncertain_below ({u})"));
         }
         Ok(())
     }

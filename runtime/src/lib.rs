@@ -36,7 +36,7 @@ mod resize;
 mod tracker;
 
 pub use atomic::{commit, temporary_path, write_atomically, write_files_atomically};
-pub use config::{Family, TrackerConfig};
+pub use config::{Family, StateSignal, TrackerConfig};
 pub use crop::{crop_to_tensor, get_subwindow};
 pub use cropper::{Cropper, TemplateCrop};
 pub use error::{Error, Result};
@@ -55,4 +55,4 @@ pub use plan::{set_threads, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeat
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
 pub use recording::{record, replay, TensorMatch, RECORDING_INDEX};
 pub use resize::{resize_linear_u8, resize_linear_u8_rows};
-pub use tracker::{BBox, Prediction, StepTimings, Tracker};
+pub use tracker::{confidence, BBox, Prediction, StepTimings, TargetState, Tracker};

@@ -5,7 +5,9 @@
 
 use std::time::{Duration, Instant};
 
-use crate::{Cropper, Error, Frame, Plan, Result, SearchOutput, TemplateCrop, TemplateFeatures, TrackerConfig};
+use crate::{
+    Cropper, Error, Frame, Plan, Result, SearchOutput, StateSignal, TemplateCrop, TemplateFeatures, TrackerConfig,
+};
 
 /// An axis-aligned box: top-left corner and size, 0-based float pixels.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -27,6 +29,47 @@ impl std::fmt::Display for BBox {
     }
 }
 
+/// How sure the tracker is that it still follows the target: its confidence (the plan's
+/// [`StateSignal`]) against the thresholds of the plan's settings
+/// ([`TrackerConfig::state_rule`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum TargetState {
+    /// The confidence is at or above `uncertain_below`.
+    Tracking,
+    /// Below `uncertain_below`, at or above `lost_below`.
+    Uncertain,
+    /// Below `lost_below` (or NaN): the box is not to be trusted.
+    Lost,
+}
+
+impl TargetState {
+    /// The state of a prediction of confidence `c` under `uncertain_below` and `lost_below`.
+    pub fn of(c: f64, uncertain_below: f64, lost_below: f64) -> TargetState {
+        if c >= uncertain_below {
+            TargetState::Tracking
+        } else if c >= lost_below {
+            TargetState::Uncertain
+        } else {
+            TargetState::Lost
+        }
+    }
+
+    /// `tracking`, `uncertain` or `lost`.
+    pub fn name(self) -> &'static str {
+        match self {
+            TargetState::Tracking => "tracking",
+            TargetState::Uncertain => "uncertain",
+            TargetState::Lost => "lost",
+        }
+    }
+}
+
+impl std::fmt::Display for TargetState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// What the tracker says about a frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Prediction {
@@ -34,6 +77,18 @@ pub struct Prediction {
     pub bbox: BBox,
     /// The score of the chosen cell (`best_score` of the official tracker; not a probability).
     pub score: f64,
+    /// The value of the plan's [`StateSignal`] the state is decided on (higher is surer).
+    pub confidence: f64,
+    /// Whether the target is followed.
+    pub state: TargetState,
+}
+
+/// The confidence of a score map whose chosen cell is `best` under `signal`.
+pub fn confidence(signal: StateSignal, score: &[f64], best: usize) -> f64 {
+    match signal {
+        StateSignal::BestScore => score[best],
+        StateSignal::MapFocus => 1.0 - score.iter().sum::<f64>() / score.len() as f64,
+    }
 }
 
 struct State {
@@ -222,9 +277,13 @@ impl Tracker {
         let st = self.state.as_mut().expect("initialised");
         st.center = (cx, cy);
         st.size = (width, height);
+        let (signal, uncertain_below, lost_below) = cfg.state_rule();
+        let confidence = confidence(signal, &score, best);
         Ok(Prediction {
             bbox: BBox { x: cx - width / 2.0, y: cy - height / 2.0, w: width, h: height },
             score: score[best],
+            confidence,
+            state: TargetState::of(confidence, uncertain_below, lost_below),
         })
     }
 }
@@ -262,5 +321,18 @@ mod tests {
         assert!(change(f64::NAN, 1e-5).is_nan());
         assert_eq!(change(0.5, 1e-5), 1.0 / 0.50001);
         assert_eq!(change(0.5, 0.0), 2.0);
+    }
+
+    #[test]
+    fn states_from_confidence() {
+        assert_eq!(TargetState::of(0.93, 0.93, 0.92), TargetState::Tracking);
+        assert_eq!(TargetState::of(0.925, 0.93, 0.92), TargetState::Uncertain);
+        assert_eq!(TargetState::of(0.92, 0.93, 0.92), TargetState::Uncertain);
+        assert_eq!(TargetState::of(0.9, 0.93, 0.92), TargetState::Lost);
+        assert_eq!(TargetState::of(f64::NAN, 0.93, 0.92), TargetState::Lost);
+        let map = [0.1, 0.9, 0.2, 0.0];
+        assert_eq!(confidence(StateSignal::BestScore, &map, 1), 0.9);
+        assert!((confidence(StateSignal::MapFocus, &map, 1) - 0.7).abs() < 1e-12);
+        assert!(confidence(StateSignal::MapFocus, &[0.5, f64::NAN], 0).is_nan());
     }
 }

@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use prl_runtime::{set_threads, BBox, Frame, Plan, Tracker};
+use prl_runtime::{set_threads, BBox, Frame, Plan, Prediction, Tracker};
 use prl_track::tracking::{self, Frames, TrackRun};
 use prl_track::{init_box_from_groundtruth, Damaged, InputError, Sequence};
 
@@ -37,9 +37,9 @@ pub struct TrackArgs {
     /// its default for the extension: `.mp4`, `.mkv`, `.avi` ...).
     #[arg(long, value_name = "FILE", requires = "video")]
     vis_video: Option<PathBuf>,
-    /// With --video: write one JSON object per frame on standard output (frame number, time,
-    /// box, score), and everything else on standard error.
-    #[arg(long, requires = "video")]
+    /// Write one JSON object per frame on standard output (frame number, box, score, confidence,
+    /// state; with --video the time too), and everything else on standard error.
+    #[arg(long)]
     jsonl: bool,
     /// Initial box `x,y,w,h` in the first frame (0-based pixels).
     #[arg(long, value_name = "X,Y,W,H", value_parser = parse_init, allow_hyphen_values = true)]
@@ -141,18 +141,27 @@ impl Summary {
         }
     }
 
-    pub fn print(&self) {
-        println!("frames: {}   FPS: {:.1} (whole loop, frame decoding included)", self.frames, self.fps);
-        println!(
-            "ms per frame (median): decode {:.1}, crop {:.1}, network {:.1}, post-processing {:.2}",
-            self.decode_ms, self.crop_ms, self.network_ms, self.post_ms
-        );
+    /// The summary as printed, line by line.
+    pub fn lines(&self) -> Vec<String> {
+        let mut l = vec![
+            format!("frames: {}   FPS: {:.1} (whole loop, frame decoding included)", self.frames, self.fps),
+            format!(
+                "ms per frame (median): decode {:.1}, crop {:.1}, network {:.1}, post-processing {:.2}",
+                self.decode_ms, self.crop_ms, self.network_ms, self.post_ms
+            ),
+        ];
         if let Some(iou) = self.mean_iou {
-            println!("mean IoU with the ground truth: {iou:.3}");
+            l.push(format!("mean IoU with the ground truth: {iou:.3}"));
         }
         if let Some(mb) = self.peak_rss_mb {
-            println!("peak resident memory: {mb:.0} MB");
+            l.push(format!("peak resident memory: {mb:.0} MB"));
         }
+        l
+    }
+
+    /// Print [`Summary::lines`] on standard output.
+    pub fn print(&self) {
+        self.lines().into_iter().for_each(|l| println!("{l}"));
     }
 }
 
@@ -161,16 +170,16 @@ pub fn track_with_progress(
     tracker: &mut Tracker,
     frames: impl Frames,
     init: BBox,
-    mut on_frame: impl FnMut(usize, &Frame, &BBox) -> anyhow::Result<()>,
+    mut on_frame: impl FnMut(usize, &Frame, &Prediction) -> anyhow::Result<()>,
 ) -> Result<TrackRun, tracking::TrackError> {
     let pb = indicatif::ProgressBar::new(frames.len() as u64);
     pb.set_style(
         indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
             .expect("static template"),
     );
-    let run = tracking::track(tracker, frames, init, |i, f, b| {
+    let run = tracking::track(tracker, frames, init, |i, f, p| {
         pb.inc(1);
-        on_frame(i, f, b).map_err(|e| format!("{e:#}"))
+        on_frame(i, f, p).map_err(|e| format!("{e:#}"))
     });
     pb.finish_and_clear();
     run
@@ -242,24 +251,49 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     if let Some(dir) = &a.vis {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
-    let mut tracker = open_tracker(&a.plan, |line| println!("{line}"))?;
+    // With --jsonl, standard output carries the per-frame objects only.
+    let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
+    let mut tracker = open_tracker(&a.plan, say)?;
     let damaged = if a.strict { Damaged::Refuse } else { Damaged::Warn };
     let files = tracking::FrameFiles { paths: &frames, damaged };
-    let run = track_with_progress(&mut tracker, files, init, |i, f, b| match &a.vis {
-        Some(dir) => save_vis(dir, i, f, b, gt.as_ref().and_then(|g| g.get(i).copied())),
-        None => Ok(()),
+    let run = track_with_progress(&mut tracker, files, init, |i, f, p| {
+        if a.jsonl {
+            println!("{}", frame_json(i, None, p));
+        }
+        match &a.vis {
+            Some(dir) => save_vis(dir, i, f, &p.bbox, gt.as_ref().and_then(|g| g.get(i).copied())),
+            None => Ok(()),
+        }
     })
     .map_err(|e| quote_init(e, &init_source))?;
     if let Some(path) = &a.results {
         write_atomically(path, run.results_text().as_bytes())?;
-        println!("results: {}", path.display());
+        say(format!("results: {}", path.display()));
     }
     let summary = Summary::of(&run, gt.as_deref());
     if let Some(path) = &a.json {
         write_atomically(path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     }
-    summary.print();
+    if a.jsonl {
+        summary.lines().into_iter().for_each(|l| eprintln!("{l}"));
+    } else {
+        summary.print();
+    }
     Ok(())
+}
+
+/// One frame's `--jsonl` object: frame number, time (video), box, score, confidence, state.
+fn frame_json(frame: usize, time_s: Option<f64>, p: &Prediction) -> serde_json::Value {
+    let b = p.bbox;
+    let mut o = serde_json::json!({ "frame": frame });
+    if let Some(t) = time_s {
+        o["time_s"] = t.into();
+    }
+    o["box"] = serde_json::json!([b.x, b.y, b.w, b.h]);
+    o["score"] = p.score.into();
+    o["confidence"] = p.confidence.into();
+    o["state"] = p.state.name().into();
+    o
 }
 
 /// The tracker of the plan in `dir`, with its own settings; `say` prints the line about the plan
@@ -304,17 +338,16 @@ fn run_video(a: &TrackArgs, src: &str, init_arg: &InitArg) -> anyhow::Result<()>
     let stamps: RefCell<Vec<(usize, f64)>> = RefCell::new(vec![]);
     let limit = a.max_frames.unwrap_or(usize::MAX).max(1);
     let frames = VideoFrames { video: &mut video, src, stamps: &stamps, limit };
-    let run = tracking::track_stream(&mut tracker, frames, init_arg.bbox(), 0, |i, f, b, score| {
+    let run = tracking::track_stream(&mut tracker, frames, init_arg.bbox(), 0, |i, f, p| {
         let (index, time) = stamps.borrow()[i];
         if a.jsonl {
-            let o = serde_json::json!({ "frame": index, "time_s": time, "box": [b.x, b.y, b.w, b.h], "score": score });
-            println!("{o}");
+            println!("{}", frame_json(index, Some(time), p));
         }
         if let Some(wr) = writer.as_mut() {
-            wr.write(drawn(f, b).bgr()).map_err(|e| e.to_string())?;
+            wr.write(drawn(f, &p.bbox).bgr()).map_err(|e| e.to_string())?;
         }
         match &a.vis {
-            Some(dir) => save_vis(dir, index, f, b, None).map_err(|e| format!("{e:#}")),
+            Some(dir) => save_vis(dir, index, f, &p.bbox, None).map_err(|e| format!("{e:#}")),
             None => Ok(()),
         }
     })
