@@ -1,6 +1,6 @@
 //! The tracker settings file is the official configuration, and the runtime's defaults agree.
 
-use prl_runtime::{StateSignal, TrackerConfig};
+use prl_runtime::{LongTermConfig, StateSignal, TrackerConfig};
 
 #[test]
 fn tracker_toml_is_the_official_configuration() {
@@ -51,4 +51,23 @@ fn state_thresholds_are_checked() {
     let base = toml::to_string(&TrackerConfig { state_signal: None, ..TrackerConfig::nanotrack() }).unwrap();
     let cfg: TrackerConfig = toml::from_str(&format!("{text}{base}")).unwrap();
     assert_eq!(cfg.state_rule().0, StateSignal::BestScore);
+}
+
+#[test]
+fn long_term_settings_have_defaults_and_are_checked() {
+    let mut cfg = TrackerConfig::nanotrack();
+    let lt = cfg.long_term_rule();
+    assert_eq!((lt.lost_below, lt.found_above, lt.tiles, lt.window_influence), (0.90, 0.94, 3, 0.001));
+    let base = toml::to_string(&cfg).unwrap();
+    let table = "\n[long_term]\nlost_below = 0.8\nfound_above = 0.95\ntiles = 5\nwindow_influence = 0.01\n";
+    let read: TrackerConfig = toml::from_str(&format!("{base}{table}")).unwrap();
+    assert_eq!(
+        read.long_term_rule(),
+        LongTermConfig { lost_below: 0.8, found_above: 0.95, tiles: 5, window_influence: 0.01 }
+    );
+    assert!(read.check().is_ok());
+    cfg.long_term = Some(LongTermConfig { tiles: 4, ..lt.clone() });
+    assert!(cfg.check().unwrap_err().contains("long_term.tiles must be odd"), "{:?}", cfg.check());
+    cfg.long_term = Some(LongTermConfig { found_above: 0.5, ..lt });
+    assert!(cfg.check().unwrap_err().contains("long_term.lost_below (0.9) must be a number at most"));
 }

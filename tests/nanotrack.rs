@@ -88,6 +88,39 @@ fn the_state_tells_a_hidden_target_from_a_tracked_one() {
     assert!(hidden[15] > 0.7, "median best score on hidden frames {}", hidden[15]);
 }
 
+#[test]
+fn the_long_term_mode_finds_a_target_the_short_term_tracker_loses() {
+    // wakeboard10 made lost-and-found: hidden on frames 30..50 while the view pans by -80,30,
+    // so the target comes back about 90 px from where it went (docs/lost-target.md, `wb10p80`).
+    let tmp = tempfile::tempdir().unwrap();
+    let plan_dir = common::nanotrack_plan(tmp.path());
+    let spec = LostAndFound { hide_from: 30, hide_frames: 20, pan: (-80, 30), view: (960, 540) };
+    let dir = tmp.path().join("wakeboard10-lf");
+    spec.make(&common::sequence("wakeboard10"), &dir).unwrap();
+    let seq = Sequence::open(&dir).unwrap();
+    let gt = seq.groundtruth.clone().unwrap();
+    let init = init_box_from_groundtruth(gt[0]);
+    let plan = Plan::load(&plan_dir).unwrap();
+    let config = plan.manifest().tracker.clone();
+    let mut tracker = Tracker::new(plan, config);
+    let short = tracking::track(&mut tracker, seq.frames.as_slice(), init, |_, _, _| Ok(())).unwrap();
+    tracker.set_long_term(true);
+    let long = tracking::track(&mut tracker, seq.frames.as_slice(), init, |_, _, _| Ok(())).unwrap();
+    // Frames after the target is back (50..) on which a run's box overlaps it (IoU > 0.3).
+    let found =
+        |run: &tracking::TrackRun| (50..gt.len()).filter(|&i| prl_track::iou(run.xywh()[i], gt[i]) > 0.3).count();
+    let (short_found, long_found) = (found(&short), found(&long));
+    // Measured: short-term 8 of 107 frames (it stays on background until it drifts back at the
+    // end), long-term 107 of 107.
+    assert!(short_found <= 20, "the short-term tracker found it on {short_found} of {} frames", gt.len() - 50);
+    assert!(long_found >= 95, "the long-term mode found it on {long_found} of {} frames", gt.len() - 50);
+    // Before the cover both modes are the same tracker, to the bit.
+    assert_eq!(short.boxes[..30], long.boxes[..30]);
+    // While the target is hidden the long-term mode says so, and keeps its box.
+    let lost = long.states[30..50].iter().filter(|&&s| s == TargetState::Lost).count();
+    assert!(lost >= 18, "{:?}", &long.states[30..50]);
+}
+
 fn import_err(backbone: &Path, head: &Path, config: Option<&Path>) -> String {
     let e = prl_compiler::import_nanotrack(backbone, head, config).unwrap_err().to_string();
     assert!(!e.contains('\n'), "one line: {e}");

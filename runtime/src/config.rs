@@ -128,6 +128,35 @@ pub struct TrackerConfig {
     /// Confidence below which the target is `lost`. `None`: the family's default.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lost_below: Option<f64>,
+    /// Re-detection settings of the long-term mode ([`crate::Tracker::set_long_term`]). `None`:
+    /// the defaults ([`TrackerConfig::long_term_rule`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub long_term: Option<LongTermConfig>,
+}
+
+/// The long-term mode: pysot's long-term SiamRPN scheme (`SiamRPNLTTracker`), on the plan's
+/// confidence rather than the best score, with the larger search region made of search crops
+/// of the usual shape, so that it works for heads tied to one search size (NanoTrack's).
+/// One rule differs from pysot's, by measurement (docs/lost-target.md): while the region is
+/// searched the box moves only to a find at or above `found_above` (pysot moves it to anything
+/// at or above its low threshold, which let the box wander off after look-alikes in the
+/// background while the target was hidden).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LongTermConfig {
+    /// Confidence below which the target counts as lost: the box stays where it was and the
+    /// following frames search the larger region (pysot's `CONFIDENCE_LOW`).
+    pub lost_below: f64,
+    /// Confidence at or above which a find in the larger region is taken: the box moves there
+    /// and the search returns to the usual crop (pysot's `CONFIDENCE_HIGH`).
+    pub found_above: f64,
+    /// Search crops per side of the larger region (odd, 1 to 9): `tiles` x `tiles` crops of the
+    /// usual scale around the last position, spaced by the span of the score map, so that their
+    /// maps tile one map `tiles` times the usual side (pysot's `LOST_INSTANCE_SIZE` 831 is about
+    /// 3.3 times its 255).
+    pub tiles: usize,
+    /// Weight of the cosine window over the larger region (pysot: 0.001).
+    pub window_influence: f64,
 }
 
 /// What tells a followed target from a lost one: the value a prediction's state is decided on
@@ -183,6 +212,7 @@ impl TrackerConfig {
             state_signal: Some(default_state_rule(Family::PrlTrack).0),
             uncertain_below: Some(default_state_rule(Family::PrlTrack).1),
             lost_below: Some(default_state_rule(Family::PrlTrack).2),
+            long_term: None,
         }
     }
 
@@ -207,6 +237,7 @@ impl TrackerConfig {
             state_signal: Some(default_state_rule(Family::Nanotrack).0),
             uncertain_below: Some(default_state_rule(Family::Nanotrack).1),
             lost_below: Some(default_state_rule(Family::Nanotrack).2),
+            long_term: None,
         }
     }
 
@@ -223,6 +254,17 @@ impl TrackerConfig {
     pub fn state_rule(&self) -> (StateSignal, f64, f64) {
         let (s, u, l) = default_state_rule(self.family);
         (self.state_signal.unwrap_or(s), self.uncertain_below.unwrap_or(u), self.lost_below.unwrap_or(l))
+    }
+
+    /// The long-term mode's settings: the plan's, else the family's defaults (both families:
+    /// lost below 0.90, found at 0.94, 3 x 3 crops, pysot's window influence 0.001; calibrated
+    /// for NanoTrack's map-focus confidence in docs/lost-target.md, not for PRL-Track).
+    pub fn long_term_rule(&self) -> LongTermConfig {
+        self.long_term.clone().unwrap_or(match self.family {
+            Family::PrlTrack | Family::Nanotrack => {
+                LongTermConfig { lost_below: 0.90, found_above: 0.94, tiles: 3, window_influence: 0.001 }
+            }
+        })
     }
 
     /// Settings that cannot run (zero or absurd sizes, non-finite numbers), as a message.
@@ -251,6 +293,19 @@ impl TrackerConfig {
         let (_, u, l) = self.state_rule();
         if !(l.is_finite() && u.is_finite() && l <= u) {
             return Err(format!("lost_below ({l}) must be a number at most uncertain_below ({u})"));
+        }
+        let lt = self.long_term_rule();
+        if !(lt.lost_below.is_finite() && lt.found_above.is_finite() && lt.lost_below <= lt.found_above) {
+            return Err(format!(
+                "long_term.lost_below ({}) must be a number at most long_term.found_above ({})",
+                lt.lost_below, lt.found_above
+            ));
+        }
+        if lt.tiles.is_multiple_of(2) || lt.tiles > 9 || !lt.window_influence.is_finite() {
+            return Err(format!(
+                "long_term.tiles must be odd and at most 9 (got {}), long_term.window_influence finite",
+                lt.tiles
+            ));
         }
         Ok(())
     }

@@ -36,7 +36,7 @@ mod resize;
 mod tracker;
 
 pub use atomic::{commit, temporary_path, write_atomically, write_files_atomically};
-pub use config::{Family, StateSignal, TrackerConfig};
+pub use config::{Family, LongTermConfig, StateSignal, TrackerConfig};
 pub use crop::{crop_to_tensor, get_subwindow};
 pub use cropper::{Cropper, TemplateCrop};
 pub use error::{Error, Result};

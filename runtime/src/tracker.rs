@@ -94,6 +94,8 @@ pub fn confidence(signal: StateSignal, score: &[f64], best: usize) -> f64 {
 struct State {
     center: (f64, f64),
     size: (f64, f64),
+    /// Long-term mode: the target counts as lost and the larger region is searched.
+    redetecting: bool,
     /// The template crop's padding colour and window side, which every search crop reuses.
     template: TemplateCrop,
     features: TemplateFeatures,
@@ -116,6 +118,9 @@ pub struct Tracker {
     config: TrackerConfig,
     cropper: Cropper,
     window: Vec<f64>,
+    /// Long-term mode ([`Tracker::set_long_term`]), with the window over its larger region
+    /// (crop-major: crop 0's cells, then crop 1's...).
+    long_term: Option<Vec<f64>>,
     state: Option<State>,
     timings: StepTimings,
 }
@@ -165,7 +170,33 @@ impl Tracker {
     pub fn new(plan: Plan, config: TrackerConfig) -> Self {
         let h = hanning(config.score_size);
         let window = h.iter().flat_map(|a| h.iter().map(move |b| a * b)).collect();
-        Tracker { plan, cropper: Cropper::new(&config), config, window, state: None, timings: StepTimings::default() }
+        let cropper = Cropper::new(&config);
+        Tracker { plan, cropper, config, window, long_term: None, state: None, timings: StepTimings::default() }
+    }
+
+    /// Turn the long-term mode on or off (off: the official short-term tracker, to the number).
+    /// On, it is pysot's long-term scheme (`SiamRPNLTTracker`) on the plan's confidence: when the
+    /// confidence falls below `long_term.lost_below` the box stays where it was and the
+    /// following frames search a region of `tiles` x `tiles` search crops around it, with the
+    /// cosine window almost off, until the confidence reaches `long_term.found_above`.
+    pub fn set_long_term(&mut self, on: bool) {
+        self.long_term = on.then(|| {
+            let (k, n) = (self.config.long_term_rule().tiles, self.config.score_size);
+            let h = hanning(k * n);
+            let at = |tile: usize, cell: usize| h[tile * n + cell];
+            (0..k * k)
+                .flat_map(|t| (0..n * n).map(move |c| (t, c)))
+                .map(|(t, c)| at(t / k, c / n) * at(t % k, c % n))
+                .collect()
+        });
+        if let Some(st) = self.state.as_mut() {
+            st.redetecting = false;
+        }
+    }
+
+    /// Whether the long-term mode is searching its larger region (the target counted as lost).
+    pub fn redetecting(&self) -> bool {
+        self.state.as_ref().is_some_and(|s| s.redetecting)
     }
 
     /// Where the time of the last `init` or `track` went.
@@ -196,12 +227,16 @@ impl Tracker {
         let t1 = Instant::now();
         let features = self.plan.template(&template.z)?;
         self.timings = StepTimings { crop: t1 - t0, network: t1.elapsed(), post: Duration::ZERO };
-        self.state = Some(State { center: template.center, size: template.size, template, features });
+        self.state =
+            Some(State { center: template.center, size: template.size, redetecting: false, template, features });
         Ok(())
     }
 
     /// Locate the target in the next frame.
     pub fn track(&mut self, frame: &Frame) -> Result<Prediction> {
+        if self.redetecting() {
+            return self.redetect(frame);
+        }
         let t0 = Instant::now();
         let x = self.search_crop(frame)?;
         let t1 = Instant::now();
@@ -210,6 +245,36 @@ impl Tracker {
         let t2 = Instant::now();
         let prediction = self.update(frame.width(), frame.height(), &out)?;
         self.timings = StepTimings { crop: t1 - t0, network: t2 - t1, post: t2.elapsed() };
+        Ok(prediction)
+    }
+
+    /// The long-term mode's step while the target is lost: every crop of the larger region,
+    /// each through the search graph, then one decision over all their cells.
+    fn redetect(&mut self, frame: &Frame) -> Result<Prediction> {
+        let st = self.state.as_ref().expect("redetecting implies init");
+        let cfg = &self.config;
+        let k = cfg.long_term_rule().tiles as f64;
+        let scale_z = cfg.exemplar_size as f64
+            / self.cropper.search_context(st.size, frame.width(), frame.height(), &st.template);
+        let span = (cfg.score_size * cfg.stride) as f64;
+        let (mut crop, mut network) = (Duration::ZERO, Duration::ZERO);
+        let mut outs = Vec::with_capacity((k * k) as usize);
+        for i in 0..(k * k) as usize {
+            // Crop (row, col)'s centre, in search-crop pixels from the target's, then in frame pixels.
+            let (row, col) = ((i / k as usize) as f64, (i % k as usize) as f64);
+            let offset = ((col - (k - 1.0) / 2.0) * span, (row - (k - 1.0) / 2.0) * span);
+            let center = (st.center.0 + offset.0 / scale_z, st.center.1 + offset.1 / scale_z);
+            let t0 = Instant::now();
+            let x = self.cropper.search(frame, center, st.size, &st.template);
+            let t1 = Instant::now();
+            outs.push((self.plan.search(&x, &st.features)?, offset));
+            crop += t1 - t0;
+            network += t1.elapsed();
+        }
+        let t2 = Instant::now();
+        let tiles: Vec<(&SearchOutput, (f64, f64))> = outs.iter().map(|(o, d)| (o, *d)).collect();
+        let prediction = self.decide(frame.width(), frame.height(), &tiles)?;
+        self.timings = StepTimings { crop, network, post: t2.elapsed() };
         Ok(prediction)
     }
 
@@ -224,15 +289,26 @@ impl Tracker {
     /// argmax of the penalised, windowed score), without changing the state: for comparing two
     /// networks' outputs on the same crop.
     pub fn best_cell(&self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<usize> {
-        Ok(argmax(&self.cells(frame_w, frame_h, out)?.pscore))
+        Ok(argmax(&self.cells(frame_w, frame_h, &[(out, (0.0, 0.0))])?.pscore))
     }
 
-    /// Decoded boxes, scores, penalties and penalised scores of every cell.
-    fn cells(&self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<Cells> {
+    /// Decoded boxes, scores, penalties and penalised scores of every cell of the search outputs
+    /// `tiles`, each with its crop's centre offset from the target's in search-crop pixels
+    /// (one output at offset 0: the official step).
+    fn cells(&self, frame_w: usize, frame_h: usize, tiles: &[(&SearchOutput, (f64, f64))]) -> Result<Cells> {
         let cfg = &self.config;
         let st = self.state.as_ref().ok_or_else(|| Error::Input("update called before init".into()))?;
         let scale_z = cfg.exemplar_size as f64 / self.cropper.search_context(st.size, frame_w, frame_h, &st.template);
-        let (pred, score) = crate::family::decode(cfg, out)?;
+        let (mut pred, mut score) = (Vec::new(), Vec::new());
+        for (out, (dx, dy)) in tiles {
+            let (p, s) = crate::family::decode(cfg, out)?;
+            pred.extend(p.into_iter().map(|[cx, cy, w, h]| [cx + dx, cy + dy, w, h]));
+            score.extend(s);
+        }
+        let (window, influence) = match (&self.long_term, tiles.len()) {
+            (Some(w), n) if n > 1 => (w.as_slice(), cfg.long_term_rule().window_influence),
+            _ => (self.window.as_slice(), cfg.window_influence),
+        };
 
         let sz = |w: f64, h: f64| {
             let pad = (w + h) * 0.5;
@@ -249,7 +325,7 @@ impl Tracker {
             let r_c = change((st.size.0 / (st.size.1 + eps)) / (pw / (ph + eps)), eps);
             let p = (-(r_c * s_c - 1.0) * cfg.penalty_k).exp();
             penalty.push(p);
-            pscore.push(p * score[i] * (1.0 - cfg.window_influence) + self.window[i] * cfg.window_influence);
+            pscore.push(p * score[i] * (1.0 - influence) + window[i] * influence);
         }
         Ok(Cells { pred, score, penalty, pscore, scale_z })
     }
@@ -259,11 +335,40 @@ impl Tracker {
     /// cell, smooth and clip the target, and return it. [`Tracker::track`] is crop, network,
     /// then this; it is public for benchmarks and for callers that run the network themselves.
     pub fn update(&mut self, frame_w: usize, frame_h: usize, out: &SearchOutput) -> Result<Prediction> {
+        self.decide(frame_w, frame_h, &[(out, (0.0, 0.0))])
+    }
+
+    /// [`Tracker::update`] over the outputs of one or more crops ([`Tracker::cells`]), with the
+    /// long-term mode's rules when it is on.
+    fn decide(&mut self, frame_w: usize, frame_h: usize, tiles: &[(&SearchOutput, (f64, f64))]) -> Result<Prediction> {
         let cfg = &self.config;
-        let Cells { pred, score, penalty, pscore, scale_z } = self.cells(frame_w, frame_h, out)?;
+        let Cells { pred, score, penalty, pscore, scale_z } = self.cells(frame_w, frame_h, tiles)?;
         let st = self.state.as_ref().expect("cells checked init");
         let (fw, fh) = (frame_w as f64, frame_h as f64);
         let best = argmax(&pscore);
+        // The confidence is read on the map of the crop the best cell is in.
+        let n = score.len() / tiles.len();
+        let (tile, cell) = (best / n, best % n);
+        let (signal, uncertain_below, lost_below) = cfg.state_rule();
+        let confidence = confidence(signal, &score[tile * n..(tile + 1) * n], cell);
+        let state = TargetState::of(confidence, uncertain_below, lost_below);
+        if self.long_term.is_some() {
+            // pysot's long-term rule: below the low threshold the box stays, and the larger
+            // region is searched until a find reaches the high one (only then does the box
+            // move: LongTermConfig).
+            let lt = cfg.long_term_rule();
+            let bar = if st.redetecting { lt.found_above } else { lt.lost_below };
+            let keep = confidence.is_nan() || confidence < bar;
+            let st = self.state.as_mut().expect("initialised");
+            st.redetecting = keep;
+            if keep {
+                let (c, s) = (st.center, st.size);
+                let bbox = BBox { x: c.0 - s.0 / 2.0, y: c.1 - s.1 / 2.0, w: s.0, h: s.1 };
+                // The box kept is no find: lost, whatever the confidence of the map searched.
+                return Ok(Prediction { bbox, score: score[best], confidence, state: TargetState::Lost });
+            }
+        }
+        let st = self.state.as_ref().expect("initialised");
         let b = pred[best].map(|v| v / scale_z);
         let lr = penalty[best] * score[best] * cfg.lr;
         let cx = b[0] + st.center.0;
@@ -277,13 +382,11 @@ impl Tracker {
         let st = self.state.as_mut().expect("initialised");
         st.center = (cx, cy);
         st.size = (width, height);
-        let (signal, uncertain_below, lost_below) = cfg.state_rule();
-        let confidence = confidence(signal, &score, best);
         Ok(Prediction {
             bbox: BBox { x: cx - width / 2.0, y: cy - height / 2.0, w: width, h: height },
             score: score[best],
             confidence,
-            state: TargetState::of(confidence, uncertain_below, lost_below),
+            state,
         })
     }
 }
