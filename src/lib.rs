@@ -6,6 +6,7 @@
 mod calibration;
 mod dataset;
 mod frames;
+pub mod longterm;
 mod metrics;
 pub mod occlusion;
 pub mod ope;

@@ -260,6 +260,12 @@ impl TrackRun {
         self.boxes.iter().map(|b| format!("{},{},{},{}\n", b.x, b.y, b.w, b.h)).collect()
     }
 
+    /// The per-frame confidences, one a line: the `<video>_confidence.value` file written beside
+    /// a result file, which `prl eval`'s long-term figures read ([`crate::longterm`]).
+    pub fn confidence_text(&self) -> String {
+        self.confidences.iter().map(|c| format!("{c}\n")).collect()
+    }
+
     /// Median of one stage over the frames after the first (the tracking steps), in ms.
     pub fn median_ms(&self, stage: impl Fn(&FrameTiming) -> Duration) -> f64 {
         let mut ms: Vec<f64> = self.timings.iter().skip(1).map(|t| stage(t).as_secs_f64() * 1e3).collect();

@@ -1,10 +1,12 @@
-//! `prl eval`: score trackers' result folders on a dataset as pysot-toolkit does (OPE).
+//! `prl eval`: score trackers' result folders on a dataset as pysot-toolkit does (OPE), and with
+//! VOT-LT's long-term figures where the target is absent on some frames.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use clap::Args;
+use prl_track::longterm;
 use prl_track::ope::{evaluate, summarise, Curves, Summary};
 use prl_track::{parse_boxes, Dataset, Format};
 use serde::Serialize;
@@ -55,6 +57,67 @@ struct TrackerReport {
     attributes: BTreeMap<String, Scores>,
     #[serde(skip)]
     attribute_curves: BTreeMap<String, Summary>,
+    /// VOT-LT figures, where the dataset has frames without the target and the results have
+    /// confidences.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    long_term: Option<LongTerm>,
+}
+
+/// A tracker's long-term figures at its best threshold, and the curves over every threshold.
+#[derive(Serialize)]
+struct LongTerm {
+    precision: f64,
+    recall: f64,
+    f_score: f64,
+    threshold: f64,
+    thresholds: Vec<f64>,
+    precision_curve: Vec<f64>,
+    recall_curve: Vec<f64>,
+}
+
+/// The long-term figures of the results in `dir` (`None`, with a note, when a video has no
+/// confidences file).
+fn long_term(dataset: &Dataset, dir: &Path, name: &str) -> anyhow::Result<Option<LongTerm>> {
+    let mut per_video = vec![];
+    for v in &dataset.videos {
+        let boxes = dir.join(format!("{}.txt", v.name));
+        let path = longterm::confidence_path(&boxes);
+        if !path.is_file() {
+            println!("{name}: no {} (results without confidences): no long-term figures", path.display());
+            return Ok(None);
+        }
+        let n = v.groundtruth.len();
+        let text = prl_track::read_text_bounded(&path, prl_track::box_file_limit(n), "a confidences file")?;
+        let mut conf = longterm::parse_confidences(&text, n).map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
+        // pysot reads the init frame's confidence as NaN.
+        if let Some(c) = conf.first_mut() {
+            *c = f64::NAN;
+        }
+        let first = v.frames.first().ok_or_else(|| anyhow::anyhow!("video {}: no frames", v.name))?;
+        let (w, h) = image::image_dimensions(first)
+            .with_context(|| format!("{}: cannot read the frame's size", first.display()))?;
+        per_video.push((parse_boxes(&boxes, n)?, conf, (f64::from(w), f64::from(h)), v));
+    }
+    let all: Vec<f64> = per_video.iter().flat_map(|p| p.1.iter().copied()).collect();
+    let thresholds = longterm::thresholds(&all);
+    let curves = per_video
+        .iter()
+        .map(|(pred, conf, bounds, v)| {
+            longterm::video_curves(&v.groundtruth, pred, conf, *bounds, &thresholds)
+                .map_err(|m| anyhow::anyhow!("{}: {m}", dir.join(format!("{}.txt", v.name)).display()))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let s = longterm::summarise(thresholds, &curves);
+    let (precision, recall, f_score, threshold) = s.at_best();
+    Ok(Some(LongTerm {
+        precision,
+        recall,
+        f_score,
+        threshold,
+        thresholds: s.thresholds,
+        precision_curve: s.precision,
+        recall_curve: s.recall,
+    }))
 }
 
 #[derive(Serialize, Clone, Copy)]
@@ -125,11 +188,28 @@ fn table(title: &str, rows: &[(String, Scores)]) {
     println!("{}", "-".repeat(header.len()));
 }
 
+/// VOT-LT's table: precision, recall and F-score at each tracker's best threshold, best first.
+fn long_term_table(reports: &[TrackerReport]) {
+    let mut rows: Vec<(&str, &LongTerm)> =
+        reports.iter().filter_map(|r| r.long_term.as_ref().map(|l| (r.name.as_str(), l))).collect();
+    rows.sort_by(|x, y| y.1.f_score.total_cmp(&x.1.f_score));
+    let w = rows.iter().map(|r| r.0.len()).max().unwrap_or(0).max(12) + 2;
+    let header = format!("|{:^w$}|{:^11}|{:^8}|{:^7}|{:^11}|", "Tracker name", "Precision", "Recall", "F", "threshold");
+    println!("\nlong-term (VOT-LT: precision, recall and F-score at the threshold of the best F; frames without the target count)");
+    println!("{}\n{header}\n{}", "-".repeat(header.len()), "-".repeat(header.len()));
+    for (name, l) in rows {
+        println!("|{:^w$}|{:^11.3}|{:^8.3}|{:^7.3}|{:^11.4}|", name, l.precision, l.recall, l.f_score, l.threshold);
+    }
+    println!("{}", "-".repeat(header.len()));
+}
+
 pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     let dataset = Dataset::open(&a.dataset, a.format)?;
     let root = results_root(&a.results, &dataset.name);
     let names = if a.trackers.is_empty() { tracker_names(&root)? } else { a.trackers.clone() };
     let attrs = dataset.attributes();
+    // Long-term figures where the target leaves the view on some frame (NaN ground truth).
+    let absent = dataset.videos.iter().any(|v| v.groundtruth.iter().any(|g| !longterm::present(*g)));
     let mut reports = vec![];
     for name in &names {
         let per_video = score(&dataset, &root.join(name))?;
@@ -149,6 +229,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
             videos,
             attributes,
             attribute_curves,
+            long_term: if absent { long_term(&dataset, &root.join(name), name)? } else { None },
         });
     }
     // pysot's order: success, best first.
@@ -166,6 +247,9 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
         })
         .collect();
     table("", &rows);
+    if absent {
+        long_term_table(&reports);
+    }
     if a.attributes {
         for (attr, vids) in &attrs {
             let mut rows: Vec<(String, Scores)> =

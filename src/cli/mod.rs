@@ -164,6 +164,13 @@ pub fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> anyhow::Result<
     })
 }
 
+/// Write a run's pysot-format results to `path` and its per-frame confidences beside them
+/// (`<stem>_confidence.value`, for `prl eval`'s long-term figures), each through a temporary.
+pub fn write_results(path: &std::path::Path, run: &prl_track::tracking::TrackRun) -> anyhow::Result<()> {
+    write_atomically(path, run.results_text().as_bytes())?;
+    write_atomically(&prl_track::longterm::confidence_path(path), run.confidence_text().as_bytes())
+}
+
 /// Peak resident memory of this process so far, in MB (where the OS reports it). On Linux this
 /// is `VmHWM` of `/proc/self/status`, which starts afresh at `exec`; `getrusage`'s maximum would
 /// carry over the memory of the process that spawned us (`prl compare` runs `prl track`).

@@ -9,9 +9,10 @@ use std::sync::Mutex;
 use anyhow::Context;
 use clap::Args;
 use prl_runtime::{set_threads, Plan, Tracker};
-use prl_track::{init_box_from_groundtruth, tracking, Dataset, Format, Video};
+use prl_track::tracking::{self, TrackRun};
+use prl_track::{init_box_from_groundtruth, Dataset, Format, Video};
 
-use super::write_atomically;
+use super::{write_atomically, write_results};
 
 #[derive(Args)]
 pub struct RunBenchmarkArgs {
@@ -45,6 +46,9 @@ pub struct RunBenchmarkArgs {
     /// Skip videos whose result file is already complete.
     #[arg(long)]
     resume: bool,
+    /// Track in the long-term mode (re-detection of a lost target; `prl track --long-term`).
+    #[arg(long)]
+    long_term: bool,
 }
 
 fn parse_shard(s: &str) -> Result<(usize, usize), String> {
@@ -64,13 +68,8 @@ fn complete(path: &Path, v: &Video) -> bool {
         .unwrap_or(false)
 }
 
-/// Track one video; returns its results text and the seconds each frame's tracking took
-/// (frame decoding excluded).
-fn track_video(
-    tracker: &mut Tracker,
-    v: &Video,
-    progress: &indicatif::ProgressBar,
-) -> anyhow::Result<(String, Vec<f64>)> {
+/// Track one video.
+fn track_video(tracker: &mut Tracker, v: &Video, progress: &indicatif::ProgressBar) -> anyhow::Result<TrackRun> {
     let n = v.groundtruth.len();
     anyhow::ensure!(v.frames.len() >= n, "video {}: {} frames for {} ground-truth boxes", v.name, v.frames.len(), n);
     let init = init_box_from_groundtruth(v.init);
@@ -78,7 +77,7 @@ fn track_video(
         progress.inc(1);
         Ok(())
     })?;
-    Ok((run.results_text(), run.timings.iter().map(|t| t.tracking().as_secs_f64()).collect()))
+    Ok(run)
 }
 
 pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
@@ -128,10 +127,13 @@ pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
                     let plan = Plan::load(&a.plan)?;
                     let config = plan.manifest().tracker.clone();
                     let mut tracker = Tracker::new(plan, config);
+                    tracker.set_long_term(a.long_term);
                     while !failed.load(Ordering::Relaxed) {
                         let Some(v) = todo.get(next.fetch_add(1, Ordering::Relaxed)) else { break };
-                        let (text, times) = track_video(&mut tracker, v, &progress)?;
-                        write_atomically(&out.join(format!("{}.txt", v.name)), text.as_bytes())?;
+                        let run = track_video(&mut tracker, v, &progress)?;
+                        write_results(&out.join(format!("{}.txt", v.name)), &run)?;
+                        // The seconds each frame's tracking took (frame decoding excluded).
+                        let times: Vec<f64> = run.timings.iter().map(|t| t.tracking().as_secs_f64()).collect();
                         let t: String = times.iter().map(|t| format!("{t:.6}\n")).collect();
                         write_atomically(&out.join(format!("{}_time.txt", v.name)), t.as_bytes())?;
                         let rate = times.len() as f64 / times.iter().sum::<f64>();
@@ -156,6 +158,9 @@ pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
     for (name, rate) in &fps {
         println!("  {name:<28} {rate:>6.1} FPS (tracking, frame decoding excluded)");
     }
-    println!("results: {} (per-frame seconds in <video>_time.txt)", out.display());
+    println!(
+        "results: {} (per-frame seconds in <video>_time.txt, confidences in <video>_confidence.value)",
+        out.display()
+    );
     Ok(())
 }

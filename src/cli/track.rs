@@ -9,7 +9,9 @@ use prl_runtime::{set_threads, BBox, Frame, Plan, Prediction, Tracker};
 use prl_track::tracking::{self, Frames, TrackRun};
 use prl_track::{init_box_from_groundtruth, Damaged, InputError, Sequence};
 
-use super::write_atomically;
+use prl_track::longterm;
+
+use super::{write_atomically, write_results};
 
 #[derive(Args)]
 pub struct TrackArgs {
@@ -41,6 +43,11 @@ pub struct TrackArgs {
     /// state; with --video the time too), and everything else on standard error.
     #[arg(long)]
     jsonl: bool,
+    /// Long-term mode: when the confidence falls below the plan's `long_term.lost_below`, keep
+    /// the last box and search a larger region (tiles x tiles search crops) until the target is
+    /// found again (pysot's long-term scheme; docs/lost-target.md).
+    #[arg(long)]
+    long_term: bool,
     /// Initial box `x,y,w,h` in the first frame (0-based pixels).
     #[arg(long, value_name = "X,Y,W,H", value_parser = parse_init, allow_hyphen_values = true)]
     init: Option<InitArg>,
@@ -254,6 +261,7 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     // With --jsonl, standard output carries the per-frame objects only.
     let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
     let mut tracker = open_tracker(&a.plan, say)?;
+    tracker.set_long_term(a.long_term);
     let damaged = if a.strict { Damaged::Refuse } else { Damaged::Warn };
     let files = tracking::FrameFiles { paths: &frames, damaged };
     let run = track_with_progress(&mut tracker, files, init, |i, f, p| {
@@ -267,8 +275,8 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     })
     .map_err(|e| quote_init(e, &init_source))?;
     if let Some(path) = &a.results {
-        write_atomically(path, run.results_text().as_bytes())?;
-        say(format!("results: {}", path.display()));
+        write_results(path, &run)?;
+        say(format!("results: {} (confidences in {})", path.display(), longterm::confidence_path(path).display()));
     }
     let summary = Summary::of(&run, gt.as_deref());
     if let Some(path) = &a.json {
@@ -324,6 +332,7 @@ fn run_video(a: &TrackArgs, src: &str, init_arg: &InitArg) -> anyhow::Result<()>
     let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
     // The plan first (a bad plan fails before a camera starts), then the source.
     let mut tracker = open_tracker(&a.plan, say)?;
+    tracker.set_long_term(a.long_term);
     let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every }, a.init_frame)?;
     let (w, h) = video.size();
     say(format!("video: {src}, {w}x{h}, {}", if a.live { "live (newest frame)" } else { "every frame" }));
@@ -359,17 +368,19 @@ fn run_video(a: &TrackArgs, src: &str, init_arg: &InitArg) -> anyhow::Result<()>
     anyhow::ensure!(!run.boxes.is_empty(), "{src}: no frame at or after frame {} to start on", a.init_frame);
     let stamps = stamps.into_inner();
     if let Some(path) = &a.results {
-        // Every frame: pysot's one line a frame. Live: the frame number first, frames were dropped.
-        let text: String = if a.live {
-            run.xywh()
+        // Every frame: pysot's one line a frame, and the confidences beside. Live: the frame
+        // number first, frames were dropped.
+        if a.live {
+            let text: String = run
+                .xywh()
                 .iter()
                 .zip(&stamps)
                 .map(|(b, (n, _))| format!("{n},{},{},{},{}\n", b[0], b[1], b[2], b[3]))
-                .collect()
+                .collect();
+            write_atomically(path, text.as_bytes())?;
         } else {
-            run.results_text()
-        };
-        write_atomically(path, text.as_bytes())?;
+            write_results(path, &run)?;
+        }
         say(format!("results: {}", path.display()));
     }
     let summary = Summary::of(&run, None);
