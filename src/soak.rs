@@ -122,15 +122,21 @@ pub fn soak(
     let mut samples = vec![];
     let mut window: Vec<f64> = Vec::with_capacity(every);
     let first = read_frame(&frames[0], Damaged::Warn)?;
-    tracker
-        .init(&first, init)
-        .map_err(|source| TrackError::Tracker { label: frames[0].display().to_string(), source })?;
+    tracker.init(&first, init).map_err(|source| TrackError::Tracker {
+        label: frames[0].display().to_string(),
+        target: 0,
+        source,
+    })?;
     drop(first);
     for i in 1..total.max(2) {
         let t = Instant::now();
         let path = &frames[ping_pong(i, frames.len())];
         let f = read_frame(path, Damaged::Warn)?;
-        tracker.track(&f).map_err(|source| TrackError::Tracker { label: path.display().to_string(), source })?;
+        tracker.track(&f).map_err(|source| TrackError::Tracker {
+            label: path.display().to_string(),
+            target: 0,
+            source,
+        })?;
         window.push(t.elapsed().as_secs_f64() * 1e3);
         if (i + 1) % every == 0 || i + 1 == total {
             let rss_held_mb = resident_mb().unwrap_or(f64::NAN);

@@ -55,8 +55,10 @@ pub enum TrackError {
     /// The tracker refused a frame or the box.
     #[error("{label}: {source}")]
     Tracker {
-        /// The frame.
+        /// The frame (and the target, when there are several).
         label: String,
+        /// Which target's tracker (0-based).
+        target: usize,
         /// What the runtime said.
         source: prl_runtime::Error,
     },
@@ -174,6 +176,11 @@ pub trait FrameStream {
     fn label(&self) -> String;
 }
 
+/// [`Frames`] one after another, as a [`FrameStream`].
+pub fn in_order<F: Frames>(frames: F) -> impl FrameStream {
+    InOrder { frames, next: 0 }
+}
+
 /// [`Frames`] one after another.
 struct InOrder<F> {
     frames: F,
@@ -197,47 +204,121 @@ impl<F: Frames> FrameStream for InOrder<F> {
 /// `on_frame(i, frame, prediction)` sees every frame as it goes.
 pub fn track_stream(
     tracker: &mut Tracker,
-    mut frames: impl FrameStream,
+    frames: impl FrameStream,
     init: BBox,
     expected: usize,
     mut on_frame: impl FnMut(usize, &Frame, &Prediction) -> Result<(), String>,
 ) -> Result<TrackRun, TrackError> {
+    let runs =
+        track_targets(std::slice::from_mut(tracker), 1, frames, &[init], expected, |i, f, p| on_frame(i, f, &p[0]))?;
+    Ok(runs.into_iter().next().expect("one run per tracker"))
+}
+
+/// Several targets through `frames` as they come, one tracker (one state, one box) each,
+/// `trackers[k]` starting from `inits[k]` (the trackers may share one plan: [`Plan`] clones are
+/// cheap). Each frame is decoded once; the targets' steps are spread over `jobs` threads (each
+/// thread takes a contiguous share of the targets). `on_frame(i, frame, predictions)` sees every
+/// frame with one prediction per target. One [`TrackRun`] per target; with one target this is
+/// [`track_stream`] exactly.
+///
+/// [`Plan`]: prl_runtime::Plan
+pub fn track_targets(
+    trackers: &mut [Tracker],
+    jobs: usize,
+    mut frames: impl FrameStream,
+    inits: &[BBox],
+    expected: usize,
+    mut on_frame: impl FnMut(usize, &Frame, &[Prediction]) -> Result<(), String>,
+) -> Result<Vec<TrackRun>, TrackError> {
+    if inits.len() != trackers.len() || trackers.is_empty() {
+        return Err(TrackError::Hook(format!("{} initial boxes for {} trackers", inits.len(), trackers.len())));
+    }
     let start = Instant::now();
-    let mut run = TrackRun {
-        boxes: Vec::with_capacity(expected),
-        scores: Vec::with_capacity(expected),
-        confidences: Vec::with_capacity(expected),
-        states: Vec::with_capacity(expected),
-        timings: Vec::with_capacity(expected),
-        total: Duration::ZERO,
-    };
+    let mut runs: Vec<TrackRun> = (0..trackers.len())
+        .map(|_| TrackRun {
+            boxes: Vec::with_capacity(expected),
+            scores: Vec::with_capacity(expected),
+            confidences: Vec::with_capacity(expected),
+            states: Vec::with_capacity(expected),
+            timings: Vec::with_capacity(expected),
+            total: Duration::ZERO,
+        })
+        .collect();
+    let several = trackers.len() > 1;
     let mut size = (0, 0);
     for i in 0.. {
         let t = Instant::now();
         let Some(f) = frames.next_frame()? else { break };
         let decode = t.elapsed();
-        let err = |source| TrackError::Tracker { label: frames.label(), source };
-        let p = if i == 0 {
+        if i == 0 {
             size = (f.width(), f.height());
-            tracker.init(&f, init).map_err(err)?;
-            Prediction { bbox: init, score: 1.0, confidence: 1.0, state: TargetState::Tracking }
-        } else {
-            if (f.width(), f.height()) != size {
-                let (got_w, got_h) = (f.width(), f.height());
-                return Err(TrackError::Size { label: frames.label(), got_w, got_h, w: size.0, h: size.1 });
+        } else if (f.width(), f.height()) != size {
+            let (got_w, got_h) = (f.width(), f.height());
+            return Err(TrackError::Size { label: frames.label(), got_w, got_h, w: size.0, h: size.1 });
+        }
+        let steps = each_target(trackers, jobs, |k, tracker| {
+            if i == 0 {
+                tracker.init(&f, inits[k])?;
+                Ok(Prediction { bbox: inits[k], score: 1.0, confidence: 1.0, state: TargetState::Tracking })
+            } else {
+                tracker.track(&f)
             }
-            tracker.track(&f).map_err(err)?
-        };
-        run.boxes.push(p.bbox);
-        run.scores.push(p.score);
-        run.confidences.push(p.confidence);
-        run.states.push(p.state);
-        let s = tracker.last_timings();
-        run.timings.push(FrameTiming { decode, crop: s.crop, network: s.network, post: s.post });
-        on_frame(i, &f, &p).map_err(TrackError::Hook)?;
+        });
+        let mut predictions = Vec::with_capacity(steps.len());
+        for (k, step) in steps.into_iter().enumerate() {
+            let p = step.map_err(|source| {
+                let label = if several { format!("{} (target {})", frames.label(), k + 1) } else { frames.label() };
+                TrackError::Tracker { label, target: k, source }
+            })?;
+            let run = &mut runs[k];
+            run.boxes.push(p.bbox);
+            run.scores.push(p.score);
+            run.confidences.push(p.confidence);
+            run.states.push(p.state);
+            let s = trackers[k].last_timings();
+            run.timings.push(FrameTiming { decode, crop: s.crop, network: s.network, post: s.post });
+            predictions.push(p);
+        }
+        on_frame(i, &f, &predictions).map_err(TrackError::Hook)?;
     }
-    run.total = start.elapsed();
-    Ok(run)
+    let total = start.elapsed();
+    runs.iter_mut().for_each(|r| r.total = total);
+    Ok(runs)
+}
+
+/// One tracking step of every target on `frame`, spread over `jobs` threads as
+/// [`track_targets`] does: each target's prediction, or the first error with its target.
+pub fn step_targets(
+    trackers: &mut [Tracker],
+    jobs: usize,
+    frame: &Frame,
+) -> Result<Vec<Prediction>, (usize, prl_runtime::Error)> {
+    let steps = each_target(trackers, jobs, |_, t| t.track(frame));
+    steps.into_iter().enumerate().map(|(k, s)| s.map_err(|e| (k, e))).collect()
+}
+
+/// `step(k, tracker)` for every tracker, on up to `jobs` threads (contiguous shares, results in
+/// tracker order); on the calling thread alone for one job or one tracker.
+fn each_target<T: Send>(
+    trackers: &mut [Tracker],
+    jobs: usize,
+    step: impl Fn(usize, &mut Tracker) -> T + Sync,
+) -> Vec<T> {
+    if jobs <= 1 || trackers.len() <= 1 {
+        return trackers.iter_mut().enumerate().map(|(k, t)| step(k, t)).collect();
+    }
+    let share = trackers.len().div_ceil(jobs);
+    let step = &step;
+    std::thread::scope(|s| {
+        let handles: Vec<_> = trackers
+            .chunks_mut(share)
+            .enumerate()
+            .map(|(c, chunk)| {
+                s.spawn(move || chunk.iter_mut().enumerate().map(|(j, t)| step(c * share + j, t)).collect::<Vec<T>>())
+            })
+            .collect();
+        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
+    })
 }
 
 impl TrackRun {

@@ -121,6 +121,47 @@ fn the_long_term_mode_finds_a_target_the_short_term_tracker_loses() {
     assert!(lost >= 18, "{:?}", &long.states[30..50]);
 }
 
+#[test]
+fn several_targets_give_each_the_boxes_of_a_single_target_run() {
+    // Three targets on wakeboard7 (the annotated one and two boxes of background), spread over
+    // two threads, the third in the long-term mode: each one's run equals its own single run.
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = Plan::load(common::nanotrack_plan(tmp.path())).unwrap();
+    let seq = Sequence::open(&common::sequence("wakeboard7")).unwrap();
+    let frames = &seq.frames[..25];
+    let inits = [
+        init_box_from_groundtruth(seq.groundtruth.as_ref().unwrap()[0]),
+        prl_runtime::BBox { x: 200.0, y: 300.0, w: 60.0, h: 40.0 },
+        prl_runtime::BBox { x: 1000.0, y: 100.0, w: 30.0, h: 50.0 },
+    ];
+    let config = plan.manifest().tracker.clone();
+    let tracker = |k: usize| {
+        let mut t = Tracker::new(plan.clone(), config.clone());
+        t.set_long_term(k == 2);
+        t
+    };
+    let mut trackers: Vec<Tracker> = (0..3).map(tracker).collect();
+    let mut seen = 0;
+    let runs =
+        tracking::track_targets(&mut trackers, 2, tracking::in_order(frames), &inits, frames.len(), |_, _, p| {
+            seen += usize::from(p.len() == 3);
+            Ok(())
+        })
+        .unwrap();
+    assert_eq!((runs.len(), seen), (3, frames.len()));
+    for (k, run) in runs.iter().enumerate() {
+        let single = tracking::track(&mut tracker(k), frames, inits[k], |_, _, _| Ok(())).unwrap();
+        assert_eq!(run.boxes, single.boxes, "target {}", k + 1);
+        assert_eq!((&run.scores, &run.states), (&single.scores, &single.states), "target {}", k + 1);
+    }
+    // A refused box names its target.
+    let bad = [inits[0], prl_runtime::BBox { x: 5000.0, y: 0.0, w: 10.0, h: 10.0 }];
+    let e = tracking::track_targets(&mut trackers[..2], 2, tracking::in_order(frames), &bad, 0, |_, _, _| Ok(()))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("(target 2)") && e.contains("outside"), "{e}");
+}
+
 fn import_err(backbone: &Path, head: &Path, config: Option<&Path>) -> String {
     let e = prl_compiler::import_nanotrack(backbone, head, config).unwrap_err().to_string();
     assert!(!e.contains('\n'), "one line: {e}");

@@ -14,7 +14,9 @@ use crate::{nnef, Error, PlanManifest, Result, PLAN_FORMAT_VERSION, PLAN_MANIFES
 
 type Runnable = Arc<TypedSimplePlan>;
 
-/// A loaded, optimised plan.
+/// A loaded, optimised plan. Cloning it is cheap (the optimised graphs are shared), so that
+/// several trackers (targets) can run one plan, on several threads at once.
+#[derive(Clone)]
 pub struct Plan {
     dir: PathBuf,
     manifest: PlanManifest,
@@ -51,6 +53,25 @@ pub struct SearchOutput {
 pub fn set_threads(n: usize) {
     use tract_linalg::multithread::{set_default_executor, Executor};
     set_default_executor(if n > 1 { Executor::multithread(n) } else { Executor::SingleThread });
+}
+
+/// A pool of threads for tract's matrix products that some calls run on ([`Threads::run`])
+/// while the rest of the process keeps the setting of [`set_threads`]: to time one target's
+/// step on every core against several targets' steps spread one thread each, in one run.
+#[derive(Clone)]
+pub struct Threads(tract_linalg::multithread::Executor);
+
+impl Threads {
+    /// `n` threads (1: on the calling thread).
+    pub fn new(n: usize) -> Threads {
+        use tract_linalg::multithread::Executor;
+        Threads(if n > 1 { Executor::multithread(n) } else { Executor::SingleThread })
+    }
+
+    /// Run `f` with tract's products on these threads (on the calling thread's calls only).
+    pub fn run<R>(&self, f: impl FnOnce() -> R) -> R {
+        tract_linalg::multithread::multithread_tract_scope(self.0.clone(), f)
+    }
 }
 
 impl Plan {
