@@ -80,6 +80,77 @@ fn track_a_frame_folder_and_write_results() {
 }
 
 #[test]
+fn several_targets_and_the_long_term_mode_from_the_command_line() {
+    let plan = common::reference_plan();
+    let dir = tempfile::tempdir().unwrap();
+    frames_dir(dir.path());
+    let results = dir.path().join("results.txt");
+    let run = |extra: &[&str]| {
+        let mut args = vec!["track", "--plan", plan.to_str().unwrap(), "--frames", dir.path().to_str().unwrap()];
+        args.extend_from_slice(&["--results", results.to_str().unwrap(), "--threads", "2"]);
+        args.extend_from_slice(extra);
+        prl(&args)
+    };
+    // One target: its results, and its confidences beside them.
+    assert!(run(&["--init", "110.5,108.5,36,24", "--long-term"]).status.success());
+    let single = std::fs::read_to_string(&results).unwrap();
+    let conf = std::fs::read_to_string(dir.path().join("results_confidence.value")).unwrap();
+    assert_eq!((single.lines().count(), conf.lines().count()), (3, 3));
+    // Two targets: one file each, the first as the single run; JSON lines carry the target.
+    let o = run(&["--init", "110.5,108.5,36,24", "--init", "20,30,40,40", "--long-term", "--jsonl"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read_to_string(dir.path().join("results_1.txt")).unwrap(), single);
+    let second = std::fs::read_to_string(dir.path().join("results_2.txt")).unwrap();
+    assert_eq!(second.lines().next(), Some("20,30,40,40"));
+    let objs: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let targets: Vec<u64> = objs.iter().map(|o| o["target"].as_u64().unwrap()).collect();
+    assert_eq!(targets, [1, 2, 1, 2, 1, 2]);
+    assert!(stderr(&o).contains("targets: 2 on 2 thread(s)"), "{}", stderr(&o));
+    // A refused second box is quoted as typed, with its target.
+    let o = run(&["--init", "110.5,108.5,36,24", "--init", "9e9,0,5,5"]);
+    let e = stderr(&o);
+    assert!(!o.status.success() && e.contains("--init 9e9,0,5,5") && e.contains("(target 2)"), "{e}");
+}
+
+#[test]
+fn eval_reports_long_term_figures_where_the_target_is_absent() {
+    // A three-frame video whose target is absent on frame 2, and a tracker's results with their
+    // confidences: VOT-LT's figures as pysot-toolkit computes them.
+    let root = tempfile::tempdir().unwrap();
+    let video = root.path().join("data/vid");
+    std::fs::create_dir_all(video.join("img")).unwrap();
+    frames_dir(&video.join("img"));
+    std::fs::write(video.join("groundtruth_rect.txt"), "10,10,20,20\nNaN,NaN,NaN,NaN\n30,30,20,20\n").unwrap();
+    let res = root.path().join("results/tracker");
+    std::fs::create_dir_all(&res).unwrap();
+    std::fs::write(res.join("vid.txt"), "10,10,20,20\n60,60,20,20\n30,30,20,10\n").unwrap();
+    std::fs::write(res.join("vid_confidence.value"), "1\n0.3\n0.9\n").unwrap();
+    let data = root.path().join("data");
+    let out = common::ok(&prl(&[
+        "eval",
+        "--dataset",
+        data.to_str().unwrap(),
+        "--results",
+        res.parent().unwrap().to_str().unwrap(),
+    ]));
+    // Frame 3 (confidence 0.9, overlap 0.5) alone: precision 0.5, recall 0.5 / 2 present frames.
+    let row = out.lines().skip_while(|l| !l.starts_with("long-term")).find(|l| l.contains("tracker")).unwrap();
+    let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+    assert_eq!(&cells[2..5], ["0.500", "0.250", "0.333"], "{out}");
+    // Without the confidences file: a note, no figures.
+    std::fs::remove_file(res.join("vid_confidence.value")).unwrap();
+    let out = common::ok(&prl(&[
+        "eval",
+        "--dataset",
+        data.to_str().unwrap(),
+        "--results",
+        res.parent().unwrap().to_str().unwrap(),
+    ]));
+    assert!(out.contains("results without confidences"), "{out}");
+}
+
+#[test]
 fn bad_track_inputs_are_one_line_errors() {
     let plan = common::reference_plan();
     let plan = plan.to_str().unwrap();

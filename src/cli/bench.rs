@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use prl_runtime::{set_threads, BBox, Frame, Plan, Tracker};
-use prl_track::{init_box_from_groundtruth, load_frame, Sequence};
+use prl_runtime::{set_threads, BBox, Frame, Plan, Threads, Tracker};
+use prl_track::{init_box_from_groundtruth, load_frame, tracking, Sequence};
 use serde::Serialize;
 
 use super::write_atomically;
@@ -40,6 +40,57 @@ pub struct BenchArgs {
     /// exactly the same data (see `benches/peers/`).
     #[arg(long, value_name = "DIR")]
     save_tensors: Option<PathBuf>,
+    /// Also time the tracking step of N targets at once (one plan, the targets spread over the
+    /// threads) against one target's step on all the threads, interleaved in one run.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    targets: usize,
+}
+
+/// The step of `n` targets against one target's, interleaved (`prl bench --targets`).
+#[derive(Serialize)]
+struct Targets {
+    targets: usize,
+    jobs: usize,
+    one_target: Stat,
+    all_targets: Stat,
+    ratio: f64,
+}
+
+/// Time `runs` steps of one target on `threads` threads against `n` targets spread over them.
+fn time_targets(
+    plan: &Plan,
+    frame: &Frame,
+    init: BBox,
+    n: usize,
+    threads: usize,
+    runs: usize,
+) -> anyhow::Result<Targets> {
+    let config = plan.manifest().tracker.clone();
+    let mut one = Tracker::new(plan.clone(), config.clone());
+    let mut many: Vec<Tracker> = (0..n).map(|_| Tracker::new(plan.clone(), config.clone())).collect();
+    let jobs = threads.min(n);
+    // Several targets: `jobs` threads of `threads / jobs` each; one target: all of them.
+    set_threads((threads / jobs).max(1));
+    let all = Threads::new(threads);
+    all.run(|| one.init(frame, init))?;
+    for t in &mut many {
+        t.init(frame, init)?;
+    }
+    let (mut single, mut several) = (vec![], vec![]);
+    for i in 0..runs + 1 {
+        let t = Instant::now();
+        all.run(|| one.track(frame))?;
+        let t1 = Instant::now();
+        tracking::step_targets(&mut many, jobs, frame).map_err(|(k, e)| anyhow::anyhow!("target {}: {e}", k + 1))?;
+        if i > 0 {
+            single.push(t1 - t);
+            several.push(t1.elapsed());
+        }
+    }
+    set_threads(threads);
+    let (one_target, all_targets) = (stat("one target", &single), stat("all targets", &several));
+    let ratio = all_targets.median_ms / one_target.median_ms;
+    Ok(Targets { targets: n, jobs, one_target, all_targets, ratio })
 }
 
 #[derive(Serialize)]
@@ -97,6 +148,8 @@ struct Report {
     peak_rss_mb: Option<f64>,
     top_ops: Vec<Op>,
     modules: Vec<Module>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    targets: Option<Targets>,
 }
 
 fn stat(stage: &'static str, v: &[Duration]) -> Stat {
@@ -119,6 +172,7 @@ fn input(seq: Option<&Path>) -> anyhow::Result<(Frame, BBox, String)> {
 
 pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.runs >= 1, "--runs must be at least 1");
+    anyhow::ensure!((1..=64).contains(&a.targets), "--targets must be 1 to 64");
     let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     set_threads(threads);
     let (frame, init, frame_name) = input(a.sequence.as_deref())?;
@@ -154,6 +208,11 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     }
     pb.finish_and_clear();
     template.remove(0);
+    let targets = if a.targets > 1 {
+        Some(time_targets(tracker.plan(), &frame, init, a.targets, threads, a.runs)?)
+    } else {
+        None
+    };
     // Operator profile of the search graph on the real crops, around the initial box.
     tracker.init(&frame, init)?;
     let x = tracker.search_crop(&frame)?;
@@ -208,6 +267,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         peak_rss_mb: super::peak_rss_mb(),
         top_ops,
         modules,
+        targets,
     };
 
     println!(
@@ -231,6 +291,19 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         println!("{:<18} {:>10.2} {:>10.2}", s.stage, s.median_ms, s.p90_ms);
     }
     println!("FPS (tracking step): {:.1}", report.fps);
+    if let Some(t) = &report.targets {
+        println!(
+            "{} targets, {} at a time: step {:.2} ms (p90 {:.2}) against {:.2} ms (p90 {:.2}) for one target on {} thread(s): {:.2}x",
+            t.targets,
+            t.jobs,
+            t.all_targets.median_ms,
+            t.all_targets.p90_ms,
+            t.one_target.median_ms,
+            t.one_target.p90_ms,
+            threads,
+            t.ratio
+        );
+    }
     if let Some(mb) = report.peak_rss_mb {
         println!("peak resident memory: {mb:.0} MB");
     }

@@ -48,17 +48,20 @@ pub struct TrackArgs {
     /// found again (pysot's long-term scheme; docs/lost-target.md).
     #[arg(long)]
     long_term: bool,
-    /// Initial box `x,y,w,h` in the first frame (0-based pixels).
+    /// Initial box `x,y,w,h` in the first frame (0-based pixels). Repeat it to track several
+    /// targets at once, on one plan (target 1 is the first --init).
     #[arg(long, value_name = "X,Y,W,H", value_parser = parse_init, allow_hyphen_values = true)]
-    init: Option<InitArg>,
+    init: Vec<InitArg>,
     /// Write one `x,y,w,h` line per frame here (pysot format; first line the init box); with
-    /// --live, `frame,x,y,w,h` lines (the frame number first: frames were dropped).
+    /// --live, `frame,x,y,w,h` lines (the frame number first: frames were dropped). With several
+    /// targets, one file each: `NAME_1.txt`, `NAME_2.txt`...
     #[arg(long, value_name = "FILE")]
     results: Option<PathBuf>,
     /// Write each frame with its box drawn (ground truth too, when known) into this folder.
     #[arg(long, value_name = "DIR")]
     vis: Option<PathBuf>,
-    /// Threads for the network (default: all cores).
+    /// Threads (default: all cores). With several targets, the targets are spread over them
+    /// (one thread per target while there are fewer targets than threads).
     #[arg(long)]
     threads: Option<usize>,
     /// Track only the first N frames.
@@ -103,14 +106,35 @@ fn first_box_as_written(dir: &Path, parsed: [f64; 4]) -> String {
     }
 }
 
-/// A run's error, with a refused init box quoted as `source` gave it (`--init 0,0,1e7,1e7`).
-fn quote_init(e: tracking::TrackError, source: &str) -> anyhow::Error {
+/// A run's error, with a refused init box quoted as `sources[target]` gave it
+/// (`--init 0,0,1e7,1e7`).
+fn quote_init(e: tracking::TrackError, sources: &[String]) -> anyhow::Error {
     match e {
-        tracking::TrackError::Tracker { label, source: prl_runtime::Error::InitBox { problem, .. } } => {
-            anyhow::anyhow!("{source}: {problem} (on {label})")
+        tracking::TrackError::Tracker { label, target, source: prl_runtime::Error::InitBox { problem, .. } } => {
+            anyhow::anyhow!("{}: {problem} (on {label})", sources.get(target).map_or("the init box", |s| s.as_str()))
         }
         e => e.into(),
     }
+}
+
+/// The result file of target `k` (0-based) of `n`: `path` itself for one target, else
+/// `NAME_<k+1>.EXT`.
+fn target_path(path: &Path, k: usize, n: usize) -> PathBuf {
+    if n == 1 {
+        return path.to_path_buf();
+    }
+    let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    let ext = path.extension().map(|e| format!(".{}", e.to_string_lossy())).unwrap_or_default();
+    path.with_file_name(format!("{stem}_{}{ext}", k + 1))
+}
+
+/// Spread `targets` over the `threads` asked for (default: all cores): the jobs that run
+/// targets side by side, each job's threads for the network set process-wide.
+fn spread_threads(threads: Option<usize>, targets: usize) -> usize {
+    let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1);
+    let jobs = threads.min(targets).max(1);
+    set_threads((threads / jobs).max(1));
+    jobs
 }
 
 /// Per-stage times of a run and how the boxes compare with ground truth (`--json` writes it).
@@ -179,37 +203,50 @@ pub fn track_with_progress(
     init: BBox,
     mut on_frame: impl FnMut(usize, &Frame, &Prediction) -> anyhow::Result<()>,
 ) -> Result<TrackRun, tracking::TrackError> {
-    let pb = indicatif::ProgressBar::new(frames.len() as u64);
+    let runs =
+        targets_with_progress(std::slice::from_mut(tracker), 1, frames, &[init], |i, f, p| on_frame(i, f, &p[0]))?;
+    Ok(runs.into_iter().next().expect("one run per tracker"))
+}
+
+/// [`prl_track::tracking::track_targets`] through frame files, behind a progress bar.
+fn targets_with_progress<F: Frames>(
+    trackers: &mut [Tracker],
+    jobs: usize,
+    frames: F,
+    inits: &[BBox],
+    mut on_frame: impl FnMut(usize, &Frame, &[Prediction]) -> anyhow::Result<()>,
+) -> Result<Vec<TrackRun>, tracking::TrackError> {
+    let n = frames.len();
+    let pb = indicatif::ProgressBar::new(n as u64);
     pb.set_style(
         indicatif::ProgressStyle::with_template("{bar:40} {pos}/{len} frames {per_sec} eta {eta}")
             .expect("static template"),
     );
-    let run = tracking::track(tracker, frames, init, |i, f, p| {
+    let runs = tracking::track_targets(trackers, jobs, tracking::in_order(frames), inits, n, |i, f, p| {
         pb.inc(1);
         on_frame(i, f, p).map_err(|e| format!("{e:#}"))
     });
     pb.finish_and_clear();
-    run
+    runs
 }
 
-/// A copy of the frame with `pred` drawn (green).
-fn drawn(f: &Frame, pred: &BBox) -> Frame {
-    let rgb: Vec<u8> = f.bgr().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
-    let mut img = image::RgbImage::from_raw(f.width() as u32, f.height() as u32, rgb).expect("frame size");
-    draw_rect(&mut img, [pred.x, pred.y, pred.w, pred.h], [40, 255, 40]);
-    Frame::from_rgb_image(&img)
-}
-
-/// Draw `pred` (green) and `gt` (red) on a copy of the frame and save it as JPEG.
-pub fn save_vis(dir: &Path, i: usize, f: &Frame, pred: &BBox, gt: Option<[f64; 4]>) -> anyhow::Result<()> {
+/// The frame as an RGB image with `gt` (red, where known) and every box of `preds` (green) drawn.
+fn with_boxes(f: &Frame, preds: &[Prediction], gt: Option<[f64; 4]>) -> image::RgbImage {
     let rgb: Vec<u8> = f.bgr().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
     let mut img = image::RgbImage::from_raw(f.width() as u32, f.height() as u32, rgb).expect("frame size");
     if let Some(g) = gt.filter(|g| g.iter().all(|v| v.is_finite())) {
         draw_rect(&mut img, g, [255, 40, 40]);
     }
-    draw_rect(&mut img, [pred.x, pred.y, pred.w, pred.h], [40, 255, 40]);
+    for p in preds {
+        draw_rect(&mut img, [p.bbox.x, p.bbox.y, p.bbox.w, p.bbox.h], [40, 255, 40]);
+    }
+    img
+}
+
+/// Draw `preds` (green) and `gt` (red) on a copy of the frame and save it as JPEG.
+pub fn save_vis(dir: &Path, i: usize, f: &Frame, preds: &[Prediction], gt: Option<[f64; 4]>) -> anyhow::Result<()> {
     let path = dir.join(format!("{:06}.jpg", i + 1));
-    img.save(&path).with_context(|| format!("{}: cannot write", path.display()))
+    with_boxes(f, preds, gt).save(&path).with_context(|| format!("{}: cannot write", path.display()))
 }
 
 fn draw_rect(img: &mut image::RgbImage, b: [f64; 4], color: [u8; 3]) {
@@ -234,22 +271,23 @@ fn draw_rect(img: &mut image::RgbImage, b: [f64; 4], color: [u8; 3]) {
 }
 
 pub fn run(a: TrackArgs) -> anyhow::Result<()> {
-    set_threads(a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())));
-    if let (Some(src), Some(b)) = (&a.video, &a.init) {
-        return run_video(&a, src, b);
+    let jobs = spread_threads(a.threads, a.init.len().max(1));
+    if let Some(src) = &a.video {
+        return run_video(&a, src, jobs);
     }
     let typed = |b: &InitArg| format!("--init {}", b.text);
-    let (mut frames, gt, init, init_source) = match (&a.sequence, &a.frames, &a.init) {
-        (Some(dir), _, init) => {
+    let given: Vec<(BBox, String)> = a.init.iter().map(|b| (b.bbox(), typed(b))).collect();
+    let (mut frames, gt, inits) = match (&a.sequence, &a.frames) {
+        (Some(dir), _) => {
             let seq = Sequence::open(dir)?;
-            let (init, source) = match (init, &seq.groundtruth) {
-                (Some(b), _) => (b.bbox(), typed(b)),
-                (None, Some(gt)) => (init_box_from_groundtruth(gt[0]), first_box_as_written(dir, gt[0])),
-                (None, None) => return Err(InputError::new(dir, "no groundtruth_rect.txt: give --init x,y,w,h").into()),
+            let inits = match (given.is_empty(), &seq.groundtruth) {
+                (false, _) => given,
+                (true, Some(gt)) => vec![(init_box_from_groundtruth(gt[0]), first_box_as_written(dir, gt[0]))],
+                (true, None) => return Err(InputError::new(dir, "no groundtruth_rect.txt: give --init x,y,w,h").into()),
             };
-            (seq.frames, seq.groundtruth, init, source)
+            (seq.frames, seq.groundtruth, inits)
         }
-        (None, Some(dir), Some(b)) => (Sequence::list_frames(dir)?, None, b.bbox(), typed(b)),
+        (None, Some(dir)) if !given.is_empty() => (Sequence::list_frames(dir)?, None, given),
         _ => anyhow::bail!("give --sequence DIR, or --frames DIR with --init x,y,w,h"),
     };
     if let Some(n) = a.max_frames {
@@ -260,40 +298,64 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     }
     // With --jsonl, standard output carries the per-frame objects only.
     let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
-    let mut tracker = open_tracker(&a.plan, say)?;
-    tracker.set_long_term(a.long_term);
+    let mut trackers = open_trackers(&a.plan, inits.len(), a.long_term, say)?;
     let damaged = if a.strict { Damaged::Refuse } else { Damaged::Warn };
     let files = tracking::FrameFiles { paths: &frames, damaged };
-    let run = track_with_progress(&mut tracker, files, init, |i, f, p| {
+    let boxes: Vec<BBox> = inits.iter().map(|i| i.0).collect();
+    let several = boxes.len() > 1;
+    let runs = targets_with_progress(&mut trackers, jobs, files, &boxes, |i, f, ps| {
         if a.jsonl {
-            println!("{}", frame_json(i, None, p));
+            ps.iter().enumerate().for_each(|(k, p)| println!("{}", frame_json(i, None, several.then_some(k + 1), p)));
         }
         match &a.vis {
-            Some(dir) => save_vis(dir, i, f, &p.bbox, gt.as_ref().and_then(|g| g.get(i).copied())),
+            Some(dir) => save_vis(dir, i, f, ps, gt.as_ref().and_then(|g| g.get(i).copied())),
             None => Ok(()),
         }
     })
-    .map_err(|e| quote_init(e, &init_source))?;
+    .map_err(|e| quote_init(e, &inits.iter().map(|i| i.1.clone()).collect::<Vec<_>>()))?;
     if let Some(path) = &a.results {
-        write_results(path, &run)?;
-        say(format!("results: {} (confidences in {})", path.display(), longterm::confidence_path(path).display()));
+        for (k, run) in runs.iter().enumerate() {
+            let path = target_path(path, k, runs.len());
+            write_results(&path, run)?;
+            say(format!("results: {} (confidences in {})", path.display(), longterm::confidence_path(&path).display()));
+        }
     }
-    let summary = Summary::of(&run, gt.as_deref());
+    let summary = Summary::of(&runs[0], gt.as_deref());
     if let Some(path) = &a.json {
         write_atomically(path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     }
-    if a.jsonl {
-        summary.lines().into_iter().for_each(|l| eprintln!("{l}"));
-    } else {
-        summary.print();
+    let mut lines = summary.lines();
+    if several {
+        lines.insert(1, targets_line(&runs, jobs));
     }
+    lines.into_iter().for_each(|l| if a.jsonl { eprintln!("{l}") } else { println!("{l}") });
     Ok(())
 }
 
-/// One frame's `--jsonl` object: frame number, time (video), box, score, confidence, state.
-fn frame_json(frame: usize, time_s: Option<f64>, p: &Prediction) -> serde_json::Value {
+/// With several targets: how many, on how many threads, and each one's frames lost.
+fn targets_line(runs: &[TrackRun], jobs: usize) -> String {
+    let lost: Vec<String> = runs
+        .iter()
+        .enumerate()
+        .map(|(k, r)| {
+            format!("{}: {}", k + 1, r.states.iter().filter(|&&s| s == prl_runtime::TargetState::Lost).count())
+        })
+        .collect();
+    format!(
+        "targets: {} on {jobs} thread(s) (stage times below are target 1's); frames lost per target: {}",
+        runs.len(),
+        lost.join(", ")
+    )
+}
+
+/// One frame's `--jsonl` object: frame number, target (when there are several), time (video),
+/// box, score, confidence, state.
+fn frame_json(frame: usize, time_s: Option<f64>, target: Option<usize>, p: &Prediction) -> serde_json::Value {
     let b = p.bbox;
     let mut o = serde_json::json!({ "frame": frame });
+    if let Some(k) = target {
+        o["target"] = k.into();
+    }
     if let Some(t) = time_s {
         o["time_s"] = t.into();
     }
@@ -324,15 +386,24 @@ fn open_tracker(dir: &Path, say: impl Fn(String)) -> anyhow::Result<Tracker> {
     Ok(Tracker::new(plan, config))
 }
 
+/// `n` trackers of the plan in `dir` (one plan, loaded once), in the long-term mode or not.
+fn open_trackers(dir: &Path, n: usize, long_term: bool, say: impl Fn(String)) -> anyhow::Result<Vec<Tracker>> {
+    let first = open_tracker(dir, say)?;
+    let (plan, config) = (first.plan().clone(), first.plan().manifest().tracker.clone());
+    let mut trackers = vec![first];
+    trackers.extend((1..n).map(|_| Tracker::new(plan.clone(), config.clone())));
+    trackers.iter_mut().for_each(|t| t.set_long_term(long_term));
+    Ok(trackers)
+}
+
 /// `prl track --video SRC`: decode with FFmpeg and track every frame (or the newest, `--live`).
-fn run_video(a: &TrackArgs, src: &str, init_arg: &InitArg) -> anyhow::Result<()> {
+fn run_video(a: &TrackArgs, src: &str, jobs: usize) -> anyhow::Result<()> {
     use prl_track::video::{Pacing, VideoSource};
     use std::cell::RefCell;
     // With --jsonl, standard output carries the per-frame objects only.
     let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
     // The plan first (a bad plan fails before a camera starts), then the source.
-    let mut tracker = open_tracker(&a.plan, say)?;
-    tracker.set_long_term(a.long_term);
+    let mut trackers = open_trackers(&a.plan, a.init.len(), a.long_term, say)?;
     let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every }, a.init_frame)?;
     let (w, h) = video.size();
     say(format!("video: {src}, {w}x{h}, {}", if a.live { "live (newest frame)" } else { "every frame" }));
@@ -347,45 +418,55 @@ fn run_video(a: &TrackArgs, src: &str, init_arg: &InitArg) -> anyhow::Result<()>
     let stamps: RefCell<Vec<(usize, f64)>> = RefCell::new(vec![]);
     let limit = a.max_frames.unwrap_or(usize::MAX).max(1);
     let frames = VideoFrames { video: &mut video, src, stamps: &stamps, limit };
-    let run = tracking::track_stream(&mut tracker, frames, init_arg.bbox(), 0, |i, f, p| {
+    let boxes: Vec<BBox> = a.init.iter().map(InitArg::bbox).collect();
+    let several = boxes.len() > 1;
+    let runs = tracking::track_targets(&mut trackers, jobs, frames, &boxes, 0, |i, f, ps| {
         let (index, time) = stamps.borrow()[i];
         if a.jsonl {
-            println!("{}", frame_json(index, Some(time), p));
+            ps.iter()
+                .enumerate()
+                .for_each(|(k, p)| println!("{}", frame_json(index, Some(time), several.then_some(k + 1), p)));
         }
         if let Some(wr) = writer.as_mut() {
-            wr.write(drawn(f, &p.bbox).bgr()).map_err(|e| e.to_string())?;
+            wr.write(Frame::from_rgb_image(&with_boxes(f, ps, None)).bgr()).map_err(|e| e.to_string())?;
         }
         match &a.vis {
-            Some(dir) => save_vis(dir, index, f, &p.bbox, None).map_err(|e| format!("{e:#}")),
+            Some(dir) => save_vis(dir, index, f, ps, None).map_err(|e| format!("{e:#}")),
             None => Ok(()),
         }
     })
-    .map_err(|e| quote_init(e, &format!("--init {}", init_arg.text)))?;
+    .map_err(|e| quote_init(e, &a.init.iter().map(|b| format!("--init {}", b.text)).collect::<Vec<_>>()))?;
     if let Some(wr) = writer {
         wr.finish()?;
         say(format!("video with boxes: {}", a.vis_video.as_ref().expect("set with the writer").display()));
     }
-    anyhow::ensure!(!run.boxes.is_empty(), "{src}: no frame at or after frame {} to start on", a.init_frame);
+    anyhow::ensure!(!runs[0].boxes.is_empty(), "{src}: no frame at or after frame {} to start on", a.init_frame);
     let stamps = stamps.into_inner();
     if let Some(path) = &a.results {
-        // Every frame: pysot's one line a frame, and the confidences beside. Live: the frame
-        // number first, frames were dropped.
-        if a.live {
-            let text: String = run
-                .xywh()
-                .iter()
-                .zip(&stamps)
-                .map(|(b, (n, _))| format!("{n},{},{},{},{}\n", b[0], b[1], b[2], b[3]))
-                .collect();
-            write_atomically(path, text.as_bytes())?;
-        } else {
-            write_results(path, &run)?;
+        for (k, run) in runs.iter().enumerate() {
+            let path = target_path(path, k, runs.len());
+            // Every frame: pysot's one line a frame, and the confidences beside. Live: the frame
+            // number first, frames were dropped.
+            if a.live {
+                let text: String = run
+                    .xywh()
+                    .iter()
+                    .zip(&stamps)
+                    .map(|(b, (n, _))| format!("{n},{},{},{},{}\n", b[0], b[1], b[2], b[3]))
+                    .collect();
+                write_atomically(&path, text.as_bytes())?;
+            } else {
+                write_results(&path, run)?;
+            }
+            say(format!("results: {}", path.display()));
         }
-        say(format!("results: {}", path.display()));
     }
-    let summary = Summary::of(&run, None);
+    let summary = Summary::of(&runs[0], None);
     if let Some(path) = &a.json {
         write_atomically(path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    }
+    if several {
+        say(targets_line(&runs, jobs));
     }
     say(format!(
         "frames: {} tracked, {} dropped   FPS: {:.1}   ms per frame (median): decode {:.1}, crop {:.1}, network {:.1}",
