@@ -119,6 +119,10 @@ fn the_long_term_mode_finds_a_target_the_short_term_tracker_loses() {
     // While the target is hidden the long-term mode says so, and keeps its box.
     let lost = long.states[30..50].iter().filter(|&&s| s == TargetState::Lost).count();
     assert!(lost >= 18, "{:?}", &long.states[30..50]);
+    // The region's crops searched on two threads: the same run.
+    tracker.set_region_threads(2);
+    let spread = tracking::track(&mut tracker, seq.frames.as_slice(), init, |_, _, _| Ok(())).unwrap();
+    assert_eq!((spread.boxes, spread.states), (long.boxes, long.states));
 }
 
 #[test]

@@ -121,6 +121,8 @@ pub struct Tracker {
     /// Long-term mode ([`Tracker::set_long_term`]), with the window over its larger region
     /// (crop-major: crop 0's cells, then crop 1's...).
     long_term: Option<Vec<f64>>,
+    /// Threads the long-term mode's region crops are searched on ([`Tracker::set_region_threads`]).
+    region_threads: usize,
     state: Option<State>,
     timings: StepTimings,
 }
@@ -171,7 +173,16 @@ impl Tracker {
         let h = hanning(config.score_size);
         let window = h.iter().flat_map(|a| h.iter().map(move |b| a * b)).collect();
         let cropper = Cropper::new(&config);
-        Tracker { plan, cropper, config, window, long_term: None, state: None, timings: StepTimings::default() }
+        let timings = StepTimings::default();
+        Tracker { plan, cropper, config, window, long_term: None, region_threads: 1, state: None, timings }
+    }
+
+    /// Threads the long-term mode searches its region's crops on. 1 (the default): one after
+    /// another on the calling thread, the network on the threads of [`crate::set_threads`];
+    /// `n` > 1: `n` threads side by side, each running its share of the crops with the network
+    /// on its own thread (the crops are independent: on small networks this scales better).
+    pub fn set_region_threads(&mut self, n: usize) {
+        self.region_threads = n.max(1);
     }
 
     /// Turn the long-term mode on or off (off: the official short-term tracker, to the number).
@@ -257,22 +268,21 @@ impl Tracker {
         let scale_z = cfg.exemplar_size as f64
             / self.cropper.search_context(st.size, frame.width(), frame.height(), &st.template);
         let span = (cfg.score_size * cfg.stride) as f64;
-        let (mut crop, mut network) = (Duration::ZERO, Duration::ZERO);
-        let mut outs = Vec::with_capacity((k * k) as usize);
+        let t0 = Instant::now();
+        let (mut crops, mut offsets) = (Vec::new(), Vec::new());
         for i in 0..(k * k) as usize {
             // Crop (row, col)'s centre, in search-crop pixels from the target's, then in frame pixels.
             let (row, col) = ((i / k as usize) as f64, (i % k as usize) as f64);
             let offset = ((col - (k - 1.0) / 2.0) * span, (row - (k - 1.0) / 2.0) * span);
             let center = (st.center.0 + offset.0 / scale_z, st.center.1 + offset.1 / scale_z);
-            let t0 = Instant::now();
-            let x = self.cropper.search(frame, center, st.size, &st.template);
-            let t1 = Instant::now();
-            outs.push((self.plan.search(&x, &st.features)?, offset));
-            crop += t1 - t0;
-            network += t1.elapsed();
+            crops.push(self.cropper.search(frame, center, st.size, &st.template));
+            offsets.push(offset);
         }
+        let t1 = Instant::now();
+        let outs = search_all(&self.plan, &crops, &st.features, self.region_threads)?;
+        let (crop, network) = (t1 - t0, t1.elapsed());
         let t2 = Instant::now();
-        let tiles: Vec<(&SearchOutput, (f64, f64))> = outs.iter().map(|(o, d)| (o, *d)).collect();
+        let tiles: Vec<(&SearchOutput, (f64, f64))> = outs.iter().zip(offsets).collect();
         let prediction = self.decide(frame.width(), frame.height(), &tiles)?;
         self.timings = StepTimings { crop, network, post: t2.elapsed() };
         Ok(prediction)
@@ -389,6 +399,26 @@ impl Tracker {
             state,
         })
     }
+}
+
+/// The search graph on every crop of `crops` with the same features, on `threads` threads
+/// (contiguous shares, each with the network on its own thread), in crop order.
+fn search_all(plan: &Plan, crops: &[Vec<f32>], zf: &TemplateFeatures, threads: usize) -> Result<Vec<SearchOutput>> {
+    if threads <= 1 || crops.len() <= 1 {
+        return crops.iter().map(|x| plan.search(x, zf)).collect();
+    }
+    let share = crops.len().div_ceil(threads);
+    let one = crate::Threads::new(1);
+    std::thread::scope(|s| {
+        let handles: Vec<_> = crops
+            .chunks(share)
+            .map(|chunk| {
+                let one = one.clone();
+                s.spawn(move || one.run(|| chunk.iter().map(|x| plan.search(x, zf)).collect::<Vec<_>>()))
+            })
+            .collect();
+        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
+    })
 }
 
 /// Every cell's decoded box, score, penalty and penalised score, and the crop's scale.

@@ -109,7 +109,8 @@ pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
     }
     let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
     let jobs = a.jobs.unwrap_or(cores).min(todo.len());
-    set_threads(a.threads.unwrap_or((cores / jobs).max(1)));
+    let per_job = a.threads.unwrap_or((cores / jobs).max(1));
+    set_threads(per_job);
     let frames: usize = todo.iter().map(|v| v.groundtruth.len()).sum();
     let progress = indicatif::ProgressBar::new(frames as u64);
     progress.set_style(
@@ -128,6 +129,7 @@ pub fn run(a: RunBenchmarkArgs) -> anyhow::Result<()> {
                     let config = plan.manifest().tracker.clone();
                     let mut tracker = Tracker::new(plan, config);
                     tracker.set_long_term(a.long_term);
+                    tracker.set_region_threads(per_job);
                     while !failed.load(Ordering::Relaxed) {
                         let Some(v) = todo.get(next.fetch_add(1, Ordering::Relaxed)) else { break };
                         let run = track_video(&mut tracker, v, &progress)?;

@@ -129,12 +129,14 @@ fn target_path(path: &Path, k: usize, n: usize) -> PathBuf {
 }
 
 /// Spread `targets` over the `threads` asked for (default: all cores): the jobs that run
-/// targets side by side, each job's threads for the network set process-wide.
-fn spread_threads(threads: Option<usize>, targets: usize) -> usize {
+/// targets side by side, and each job's threads (for the network, set process-wide, and for
+/// the long-term mode's region crops).
+fn spread_threads(threads: Option<usize>, targets: usize) -> (usize, usize) {
     let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1);
     let jobs = threads.min(targets).max(1);
-    set_threads((threads / jobs).max(1));
-    jobs
+    let per_job = (threads / jobs).max(1);
+    set_threads(per_job);
+    (jobs, per_job)
 }
 
 /// Per-stage times of a run and how the boxes compare with ground truth (`--json` writes it).
@@ -271,9 +273,9 @@ fn draw_rect(img: &mut image::RgbImage, b: [f64; 4], color: [u8; 3]) {
 }
 
 pub fn run(a: TrackArgs) -> anyhow::Result<()> {
-    let jobs = spread_threads(a.threads, a.init.len().max(1));
+    let (jobs, per_job) = spread_threads(a.threads, a.init.len().max(1));
     if let Some(src) = &a.video {
-        return run_video(&a, src, jobs);
+        return run_video(&a, src, jobs, per_job);
     }
     let typed = |b: &InitArg| format!("--init {}", b.text);
     let given: Vec<(BBox, String)> = a.init.iter().map(|b| (b.bbox(), typed(b))).collect();
@@ -298,7 +300,7 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     }
     // With --jsonl, standard output carries the per-frame objects only.
     let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
-    let mut trackers = open_trackers(&a.plan, inits.len(), a.long_term, say)?;
+    let mut trackers = open_trackers(&a.plan, inits.len(), a.long_term.then_some(per_job), say)?;
     let damaged = if a.strict { Damaged::Refuse } else { Damaged::Warn };
     let files = tracking::FrameFiles { paths: &frames, damaged };
     let boxes: Vec<BBox> = inits.iter().map(|i| i.0).collect();
@@ -386,24 +388,28 @@ fn open_tracker(dir: &Path, say: impl Fn(String)) -> anyhow::Result<Tracker> {
     Ok(Tracker::new(plan, config))
 }
 
-/// `n` trackers of the plan in `dir` (one plan, loaded once), in the long-term mode or not.
-fn open_trackers(dir: &Path, n: usize, long_term: bool, say: impl Fn(String)) -> anyhow::Result<Vec<Tracker>> {
+/// `n` trackers of the plan in `dir` (one plan, loaded once); in the long-term mode when
+/// `long_term` gives the threads its region crops are searched on.
+fn open_trackers(dir: &Path, n: usize, long_term: Option<usize>, say: impl Fn(String)) -> anyhow::Result<Vec<Tracker>> {
     let first = open_tracker(dir, say)?;
     let (plan, config) = (first.plan().clone(), first.plan().manifest().tracker.clone());
     let mut trackers = vec![first];
     trackers.extend((1..n).map(|_| Tracker::new(plan.clone(), config.clone())));
-    trackers.iter_mut().for_each(|t| t.set_long_term(long_term));
+    for t in &mut trackers {
+        t.set_long_term(long_term.is_some());
+        t.set_region_threads(long_term.unwrap_or(1));
+    }
     Ok(trackers)
 }
 
 /// `prl track --video SRC`: decode with FFmpeg and track every frame (or the newest, `--live`).
-fn run_video(a: &TrackArgs, src: &str, jobs: usize) -> anyhow::Result<()> {
+fn run_video(a: &TrackArgs, src: &str, jobs: usize, per_job: usize) -> anyhow::Result<()> {
     use prl_track::video::{Pacing, VideoSource};
     use std::cell::RefCell;
     // With --jsonl, standard output carries the per-frame objects only.
     let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
     // The plan first (a bad plan fails before a camera starts), then the source.
-    let mut trackers = open_trackers(&a.plan, a.init.len(), a.long_term, say)?;
+    let mut trackers = open_trackers(&a.plan, a.init.len(), a.long_term.then_some(per_job), say)?;
     let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every }, a.init_frame)?;
     let (w, h) = video.size();
     say(format!("video: {src}, {w}x{h}, {}", if a.live { "live (newest frame)" } else { "every frame" }));
