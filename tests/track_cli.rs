@@ -111,6 +111,21 @@ fn several_targets_and_the_long_term_mode_from_the_command_line() {
     let o = run(&["--init", "110.5,108.5,36,24", "--init", "9e9,0,5,5"]);
     let e = stderr(&o);
     assert!(!o.status.success() && e.contains("--init 9e9,0,5,5") && e.contains("(target 2)"), "{e}");
+    // The same targets from a file: the same results.
+    let first = std::fs::read_to_string(dir.path().join("results_1.txt")).unwrap();
+    let file = dir.path().join("targets.txt");
+    std::fs::write(&file, "110.5,108.5,36,24\n\n20 30 40 40\n").unwrap();
+    let o = run(&["--targets", file.to_str().unwrap(), "--long-term"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read_to_string(dir.path().join("results_1.txt")).unwrap(), first);
+    assert_eq!(std::fs::read_to_string(dir.path().join("results_2.txt")).unwrap(), second);
+    // A bad line is named; a refused box is quoted from its line.
+    std::fs::write(&file, "110.5,108.5,36,24\n20,30,40\n").unwrap();
+    let e = stderr(&run(&["--targets", file.to_str().unwrap()]));
+    assert!(e.contains("targets.txt: line 2: expected 4 numbers"), "{e}");
+    std::fs::write(&file, "110.5,108.5,36,24\n9e9,0,5,5\n").unwrap();
+    let e = stderr(&run(&["--targets", file.to_str().unwrap()]));
+    assert!(e.contains("targets.txt line 2 (9e9,0,5,5)") && e.contains("outside"), "{e}");
 }
 
 #[test]

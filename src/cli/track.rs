@@ -21,12 +21,12 @@ pub struct TrackArgs {
     /// OTB/UAV123-style sequence folder (`img/`, `groundtruth_rect.txt`); init from its first box.
     #[arg(long, value_name = "DIR", required_unless_present_any = ["frames", "video"], conflicts_with_all = ["frames", "video"])]
     sequence: Option<PathBuf>,
-    /// A bare folder of frames (needs --init).
-    #[arg(long, value_name = "DIR", requires = "init", conflicts_with = "video")]
+    /// A bare folder of frames (needs --init or --targets).
+    #[arg(long, value_name = "DIR", conflicts_with = "video")]
     frames: Option<PathBuf>,
     /// A video file, a camera device (`/dev/video0`) or a stream URL (`rtsp://...`), decoded by
-    /// FFmpeg (needs --init; install: `sudo apt-get install ffmpeg`).
-    #[arg(long, value_name = "SRC", requires = "init")]
+    /// FFmpeg (needs --init or --targets; install: `sudo apt-get install ffmpeg`).
+    #[arg(long, value_name = "SRC")]
     video: Option<String>,
     /// With --video: always track the newest frame, dropping the ones that came while the tracker
     /// was busy (cameras, streams); the default tracks every frame in order (files).
@@ -52,6 +52,10 @@ pub struct TrackArgs {
     /// targets at once, on one plan (target 1 is the first --init).
     #[arg(long, value_name = "X,Y,W,H", value_parser = parse_init, allow_hyphen_values = true)]
     init: Vec<InitArg>,
+    /// A file of initial boxes, one `x,y,w,h` line per target (after those of --init): several
+    /// targets from a file, for a frame folder, a sequence or a video.
+    #[arg(long, value_name = "FILE")]
+    targets: Option<PathBuf>,
     /// Write one `x,y,w,h` line per frame here (pysot format; first line the init box); with
     /// --live, `frame,x,y,w,h` lines (the frame number first: frames were dropped). With several
     /// targets, one file each: `NAME_1.txt`, `NAME_2.txt`...
@@ -115,6 +119,26 @@ fn quote_init(e: tracking::TrackError, sources: &[String]) -> anyhow::Error {
         }
         e => e.into(),
     }
+}
+
+/// Most targets one run tracks (each holds its own template features and state).
+const MAX_TARGETS: usize = 64;
+
+/// The initial boxes given: `--init`s, then the lines of `--targets FILE`, each with how errors
+/// quote it (`--init 1,2,3,4`, `FILE line 2 (1,2,3,4)`).
+fn given_boxes(a: &TrackArgs) -> anyhow::Result<Vec<(BBox, String)>> {
+    let mut given: Vec<(BBox, String)> = a.init.iter().map(|b| (b.bbox(), format!("--init {}", b.text))).collect();
+    if let Some(path) = &a.targets {
+        let text = prl_track::read_text_bounded(path, 64 * 1024, "a targets file")?;
+        for (i, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+            let b = prl_track::parse_box(line).map_err(|m| InputError::new(path, format!("line {}: {m}", i + 1)))?;
+            let bbox = BBox { x: b[0], y: b[1], w: b[2], h: b[3] };
+            given.push((bbox, format!("{} line {} ({})", path.display(), i + 1, line.trim())));
+        }
+        anyhow::ensure!(given.len() > a.init.len(), "{}: no box in it (one x,y,w,h line per target)", path.display());
+    }
+    anyhow::ensure!(given.len() <= MAX_TARGETS, "{} targets: at most {MAX_TARGETS} are tracked at once", given.len());
+    Ok(given)
 }
 
 /// The result file of target `k` (0-based) of `n`: `path` itself for one target, else
@@ -273,12 +297,12 @@ fn draw_rect(img: &mut image::RgbImage, b: [f64; 4], color: [u8; 3]) {
 }
 
 pub fn run(a: TrackArgs) -> anyhow::Result<()> {
-    let (jobs, per_job) = spread_threads(a.threads, a.init.len().max(1));
+    let given = given_boxes(&a)?;
+    let (jobs, per_job) = spread_threads(a.threads, given.len().max(1));
     if let Some(src) = &a.video {
-        return run_video(&a, src, jobs, per_job);
+        anyhow::ensure!(!given.is_empty(), "--video needs --init x,y,w,h or --targets FILE");
+        return run_video(&a, src, &given, jobs, per_job);
     }
-    let typed = |b: &InitArg| format!("--init {}", b.text);
-    let given: Vec<(BBox, String)> = a.init.iter().map(|b| (b.bbox(), typed(b))).collect();
     let (mut frames, gt, inits) = match (&a.sequence, &a.frames) {
         (Some(dir), _) => {
             let seq = Sequence::open(dir)?;
@@ -290,7 +314,7 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
             (seq.frames, seq.groundtruth, inits)
         }
         (None, Some(dir)) if !given.is_empty() => (Sequence::list_frames(dir)?, None, given),
-        _ => anyhow::bail!("give --sequence DIR, or --frames DIR with --init x,y,w,h"),
+        _ => anyhow::bail!("give --sequence DIR, or --frames DIR with --init x,y,w,h (or --targets FILE)"),
     };
     if let Some(n) = a.max_frames {
         frames.truncate(n.max(1));
@@ -403,13 +427,13 @@ fn open_trackers(dir: &Path, n: usize, long_term: Option<usize>, say: impl Fn(St
 }
 
 /// `prl track --video SRC`: decode with FFmpeg and track every frame (or the newest, `--live`).
-fn run_video(a: &TrackArgs, src: &str, jobs: usize, per_job: usize) -> anyhow::Result<()> {
+fn run_video(a: &TrackArgs, src: &str, given: &[(BBox, String)], jobs: usize, per_job: usize) -> anyhow::Result<()> {
     use prl_track::video::{Pacing, VideoSource};
     use std::cell::RefCell;
     // With --jsonl, standard output carries the per-frame objects only.
     let say = |line: String| if a.jsonl { eprintln!("{line}") } else { println!("{line}") };
     // The plan first (a bad plan fails before a camera starts), then the source.
-    let mut trackers = open_trackers(&a.plan, a.init.len(), a.long_term.then_some(per_job), say)?;
+    let mut trackers = open_trackers(&a.plan, given.len(), a.long_term.then_some(per_job), say)?;
     let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every }, a.init_frame)?;
     let (w, h) = video.size();
     say(format!("video: {src}, {w}x{h}, {}", if a.live { "live (newest frame)" } else { "every frame" }));
@@ -424,7 +448,7 @@ fn run_video(a: &TrackArgs, src: &str, jobs: usize, per_job: usize) -> anyhow::R
     let stamps: RefCell<Vec<(usize, f64)>> = RefCell::new(vec![]);
     let limit = a.max_frames.unwrap_or(usize::MAX).max(1);
     let frames = VideoFrames { video: &mut video, src, stamps: &stamps, limit };
-    let boxes: Vec<BBox> = a.init.iter().map(InitArg::bbox).collect();
+    let boxes: Vec<BBox> = given.iter().map(|g| g.0).collect();
     let several = boxes.len() > 1;
     let runs = tracking::track_targets(&mut trackers, jobs, frames, &boxes, 0, |i, f, ps| {
         let (index, time) = stamps.borrow()[i];
@@ -441,7 +465,7 @@ fn run_video(a: &TrackArgs, src: &str, jobs: usize, per_job: usize) -> anyhow::R
             None => Ok(()),
         }
     })
-    .map_err(|e| quote_init(e, &a.init.iter().map(|b| format!("--init {}", b.text)).collect::<Vec<_>>()))?;
+    .map_err(|e| quote_init(e, &given.iter().map(|g| g.1.clone()).collect::<Vec<_>>()))?;
     if let Some(wr) = writer {
         wr.finish()?;
         say(format!("video with boxes: {}", a.vis_video.as_ref().expect("set with the writer").display()));
