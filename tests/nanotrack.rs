@@ -166,6 +166,45 @@ fn several_targets_give_each_the_boxes_of_a_single_target_run() {
     assert!(e.contains("(target 2)") && e.contains("outside"), "{e}");
 }
 
+#[test]
+fn a_malformed_graph_archive_is_an_error_not_a_panic() {
+    // Fuzzing found tract-nnef panicking (an out-of-range slice) on a reshape whose axis_start
+    // lies past the input's rank. Such an archive, with a manifest whose digest matches it:
+    // `Plan::load` returns a one-line error naming the file.
+    use sha2::{Digest, Sha256};
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = common::nanotrack_plan(tmp.path());
+    let manifest_path = dir.join("plan.json");
+    let mut manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(&manifest_path).unwrap()).unwrap();
+    let search = dir.join(manifest["search"]["file"].as_str().unwrap());
+    let mut archive = tar::Archive::new(std::fs::File::open(&search).unwrap());
+    let mut out = tar::Builder::new(Vec::new());
+    let mut broken = false;
+    for entry in archive.entries().unwrap() {
+        let mut entry = entry.unwrap();
+        let mut bytes = vec![];
+        std::io::Read::read_to_end(&mut entry, &mut bytes).unwrap();
+        let mut header = entry.header().clone();
+        if entry.path().unwrap().to_str() == Some("graph.nnef") {
+            let text = String::from_utf8(bytes).unwrap();
+            let at = text.find("axis_start = 2").expect("a reshape in the search graph");
+            bytes = format!("{}axis_start = 9{}", &text[..at], &text[at + 14..]).into_bytes();
+            header.set_size(bytes.len() as u64);
+            header.set_cksum();
+            broken = true;
+        }
+        out.append(&header, &bytes[..]).unwrap();
+    }
+    assert!(broken);
+    let bytes = out.into_inner().unwrap();
+    std::fs::write(&search, &bytes).unwrap();
+    let digest: String = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
+    manifest["search"]["sha256"] = digest.into();
+    std::fs::write(&manifest_path, serde_json::to_vec(&manifest).unwrap()).unwrap();
+    let e = Plan::load(&dir).err().expect("refused").to_string();
+    assert!(!e.contains('\n') && e.contains(&search.display().to_string()), "{e}");
+}
+
 fn import_err(backbone: &Path, head: &Path, config: Option<&Path>) -> String {
     let e = prl_compiler::import_nanotrack(backbone, head, config).unwrap_err().to_string();
     assert!(!e.contains('\n'), "one line: {e}");

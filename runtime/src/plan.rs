@@ -270,9 +270,12 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
     let bad = |msg: String| Error::Plan { path: path.clone(), msg };
     let tract_err = |e: TractError| bad(format!("{e:#}").replace('\n', " "));
     // The digest is computed while the graph is parsed; a mismatch is reported first.
+    // tract-nnef can panic on a malformed archive (an out-of-range reshape slice; found by
+    // fuzzing): a panic there is an error naming the file, not an abort.
     let (digest, model) = std::thread::scope(|s| {
         let digest = s.spawn(|| Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect::<String>());
-        let model = nnef().model_for_read(&mut &*bytes);
+        let parse = || nnef().model_for_read(&mut &*bytes);
+        let model = std::panic::catch_unwind(std::panic::AssertUnwindSafe(parse));
         (digest.join().expect("hashing does not panic"), model)
     });
     if digest != info.sha256 {
@@ -281,6 +284,7 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             info.sha256
         )));
     }
+    let model = model.map_err(|_| bad("tract-nnef cannot read it: the graph is malformed".into()))?;
     let model = model.map_err(tract_err)?;
     if model.inputs.len() != info.inputs.len() || model.outputs.len() != info.outputs.len() {
         return Err(bad(format!(
