@@ -164,7 +164,7 @@ pub fn track(
     on_frame: impl FnMut(usize, &Frame, &Prediction) -> Result<(), String>,
 ) -> Result<TrackRun, TrackError> {
     let n = frames.len();
-    track_stream(tracker, InOrder { frames, next: 0 }, init, n, on_frame)
+    track_stream(tracker, in_order(frames), init, n, on_frame)
 }
 
 /// Frames that come one after another (a video, a camera, a stream: the length need not be
@@ -256,7 +256,7 @@ pub fn track_targets(
             let (got_w, got_h) = (f.width(), f.height());
             return Err(TrackError::Size { label: frames.label(), got_w, got_h, w: size.0, h: size.1 });
         }
-        let steps = each_target(trackers, jobs, |k, tracker| {
+        let steps = prl_runtime::spread(trackers, jobs, |k, tracker| {
             if i == 0 {
                 tracker.init(&f, inits[k])?;
                 Ok(Prediction { bbox: inits[k], score: 1.0, confidence: 1.0, state: TargetState::Tracking })
@@ -293,32 +293,8 @@ pub fn step_targets(
     jobs: usize,
     frame: &Frame,
 ) -> Result<Vec<Prediction>, (usize, prl_runtime::Error)> {
-    let steps = each_target(trackers, jobs, |_, t| t.track(frame));
+    let steps = prl_runtime::spread(trackers, jobs, |_, t| t.track(frame));
     steps.into_iter().enumerate().map(|(k, s)| s.map_err(|e| (k, e))).collect()
-}
-
-/// `step(k, tracker)` for every tracker, on up to `jobs` threads (contiguous shares, results in
-/// tracker order); on the calling thread alone for one job or one tracker.
-fn each_target<T: Send>(
-    trackers: &mut [Tracker],
-    jobs: usize,
-    step: impl Fn(usize, &mut Tracker) -> T + Sync,
-) -> Vec<T> {
-    if jobs <= 1 || trackers.len() <= 1 {
-        return trackers.iter_mut().enumerate().map(|(k, t)| step(k, t)).collect();
-    }
-    let share = trackers.len().div_ceil(jobs);
-    let step = &step;
-    std::thread::scope(|s| {
-        let handles: Vec<_> = trackers
-            .chunks_mut(share)
-            .enumerate()
-            .map(|(c, chunk)| {
-                s.spawn(move || chunk.iter_mut().enumerate().map(|(j, t)| step(c * share + j, t)).collect::<Vec<T>>())
-            })
-            .collect();
-        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
-    })
 }
 
 impl TrackRun {

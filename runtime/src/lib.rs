@@ -51,7 +51,7 @@ pub use ops::{
     ConvShape, DepthwiseConv, DepthwiseConvHwc, DepthwiseXCorr, LayerNormCore, PackedConv, PackedQConv, QuantizeU8,
     RowSoftmax,
 };
-pub use plan::{set_threads, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures, Threads};
+pub use plan::{set_threads, spread, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures, Threads};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
 pub use recording::{record, replay, TensorMatch, RECORDING_INDEX};
 pub use resize::{resize_linear_u8, resize_linear_u8_rows};

@@ -74,6 +74,27 @@ impl Threads {
     }
 }
 
+/// `f(i, item)` for every item of `items` on up to `threads` threads side by side (contiguous
+/// shares; results in item order); on the calling thread for one thread or one item. For work
+/// that is independent per item: several targets' steps, the long-term mode's region crops.
+pub fn spread<T: Send, R: Send>(items: &mut [T], threads: usize, f: impl Fn(usize, &mut T) -> R + Sync) -> Vec<R> {
+    if threads <= 1 || items.len() <= 1 {
+        return items.iter_mut().enumerate().map(|(i, t)| f(i, t)).collect();
+    }
+    let share = items.len().div_ceil(threads);
+    let f = &f;
+    std::thread::scope(|s| {
+        let handles: Vec<_> = items
+            .chunks_mut(share)
+            .enumerate()
+            .map(|(c, chunk)| {
+                s.spawn(move || chunk.iter_mut().enumerate().map(|(j, t)| f(c * share + j, t)).collect::<Vec<R>>())
+            })
+            .collect();
+        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
+    })
+}
+
 impl Plan {
     /// Load the plan in directory `dir`: read `plan.json`, check the format and each graph's
     /// SHA-256, load the NNEF graphs and optimise them.

@@ -6,7 +6,8 @@
 use std::time::{Duration, Instant};
 
 use crate::{
-    Cropper, Error, Frame, Plan, Result, SearchOutput, StateSignal, TemplateCrop, TemplateFeatures, TrackerConfig,
+    Cropper, Error, Frame, LongTermConfig, Plan, Result, SearchOutput, StateSignal, TemplateCrop, TemplateFeatures,
+    TrackerConfig,
 };
 
 /// An axis-aligned box: top-left corner and size, 0-based float pixels.
@@ -101,6 +102,13 @@ struct State {
     features: TemplateFeatures,
 }
 
+/// The long-term mode's settings, read once, and the cosine window over its larger region
+/// (crop-major: crop 0's cells, then crop 1's...).
+struct LongTerm {
+    rule: LongTermConfig,
+    window: Vec<f64>,
+}
+
 /// Where the time of the last `init` or `track` call went.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct StepTimings {
@@ -118,9 +126,8 @@ pub struct Tracker {
     config: TrackerConfig,
     cropper: Cropper,
     window: Vec<f64>,
-    /// Long-term mode ([`Tracker::set_long_term`]), with the window over its larger region
-    /// (crop-major: crop 0's cells, then crop 1's...).
-    long_term: Option<Vec<f64>>,
+    /// Long-term mode ([`Tracker::set_long_term`]).
+    long_term: Option<LongTerm>,
     /// Threads the long-term mode's region crops are searched on ([`Tracker::set_region_threads`]).
     region_threads: usize,
     state: Option<State>,
@@ -192,13 +199,15 @@ impl Tracker {
     /// cosine window almost off, until the confidence reaches `long_term.found_above`.
     pub fn set_long_term(&mut self, on: bool) {
         self.long_term = on.then(|| {
-            let (k, n) = (self.config.long_term_rule().tiles, self.config.score_size);
+            let rule = self.config.long_term_rule();
+            let (k, n) = (rule.tiles, self.config.score_size);
             let h = hanning(k * n);
             let at = |tile: usize, cell: usize| h[tile * n + cell];
-            (0..k * k)
+            let window = (0..k * k)
                 .flat_map(|t| (0..n * n).map(move |c| (t, c)))
                 .map(|(t, c)| at(t / k, c / n) * at(t % k, c % n))
-                .collect()
+                .collect();
+            LongTerm { rule, window }
         });
         if let Some(st) = self.state.as_mut() {
             st.redetecting = false;
@@ -264,7 +273,7 @@ impl Tracker {
     fn redetect(&mut self, frame: &Frame) -> Result<Prediction> {
         let st = self.state.as_ref().expect("redetecting implies init");
         let cfg = &self.config;
-        let k = cfg.long_term_rule().tiles as f64;
+        let k = self.long_term.as_ref().expect("redetecting implies the long-term mode").rule.tiles as f64;
         let scale_z = cfg.exemplar_size as f64
             / self.cropper.search_context(st.size, frame.width(), frame.height(), &st.template);
         let span = (cfg.score_size * cfg.stride) as f64;
@@ -279,7 +288,16 @@ impl Tracker {
             offsets.push(offset);
         }
         let t1 = Instant::now();
-        let outs = search_all(&self.plan, &crops, &st.features, self.region_threads)?;
+        let (plan, zf, one) = (&self.plan, &st.features, crate::Threads::new(1));
+        // With region threads: side by side, each crop's network on one thread; else one after
+        // another, the network on set_threads' threads.
+        let outs: Vec<SearchOutput> = if self.region_threads > 1 {
+            crate::spread(&mut crops, self.region_threads, |_, x| one.run(|| plan.search(x, zf)))
+        } else {
+            crops.iter().map(|x| plan.search(x, zf)).collect()
+        }
+        .into_iter()
+        .collect::<Result<_>>()?;
         let (crop, network) = (t1 - t0, t1.elapsed());
         let t2 = Instant::now();
         let tiles: Vec<(&SearchOutput, (f64, f64))> = outs.iter().zip(offsets).collect();
@@ -309,14 +327,23 @@ impl Tracker {
         let cfg = &self.config;
         let st = self.state.as_ref().ok_or_else(|| Error::Input("update called before init".into()))?;
         let scale_z = cfg.exemplar_size as f64 / self.cropper.search_context(st.size, frame_w, frame_h, &st.template);
-        let (mut pred, mut score) = (Vec::new(), Vec::new());
-        for (out, (dx, dy)) in tiles {
-            let (p, s) = crate::family::decode(cfg, out)?;
-            pred.extend(p.into_iter().map(|[cx, cy, w, h]| [cx + dx, cy + dy, w, h]));
+        // Each crop's cells, its boxes moved by its offset (none for the official step's one
+        // crop, decoded straight into place), crop after crop. `tiles` is never empty.
+        let shift = |boxes: &mut [[f64; 4]], (dx, dy): (f64, f64)| {
+            if (dx, dy) != (0.0, 0.0) {
+                boxes.iter_mut().for_each(|b| (b[0], b[1]) = (b[0] + dx, b[1] + dy));
+            }
+        };
+        let (mut pred, mut score) = crate::family::decode(cfg, tiles[0].0)?;
+        shift(&mut pred, tiles[0].1);
+        for &(out, offset) in &tiles[1..] {
+            let (mut p, s) = crate::family::decode(cfg, out)?;
+            shift(&mut p, offset);
+            pred.extend(p);
             score.extend(s);
         }
         let (window, influence) = match (&self.long_term, tiles.len()) {
-            (Some(w), n) if n > 1 => (w.as_slice(), cfg.long_term_rule().window_influence),
+            (Some(lt), n) if n > 1 => (lt.window.as_slice(), lt.rule.window_influence),
             _ => (self.window.as_slice(), cfg.window_influence),
         };
 
@@ -362,11 +389,10 @@ impl Tracker {
         let (signal, uncertain_below, lost_below) = cfg.state_rule();
         let confidence = confidence(signal, &score[tile * n..(tile + 1) * n], cell);
         let state = TargetState::of(confidence, uncertain_below, lost_below);
-        if self.long_term.is_some() {
+        if let Some(LongTerm { rule: lt, .. }) = &self.long_term {
             // pysot's long-term rule: below the low threshold the box stays, and the larger
             // region is searched until a find reaches the high one (only then does the box
             // move: LongTermConfig).
-            let lt = cfg.long_term_rule();
             let bar = if st.redetecting { lt.found_above } else { lt.lost_below };
             let keep = confidence.is_nan() || confidence < bar;
             let st = self.state.as_mut().expect("initialised");
@@ -399,26 +425,6 @@ impl Tracker {
             state,
         })
     }
-}
-
-/// The search graph on every crop of `crops` with the same features, on `threads` threads
-/// (contiguous shares, each with the network on its own thread), in crop order.
-fn search_all(plan: &Plan, crops: &[Vec<f32>], zf: &TemplateFeatures, threads: usize) -> Result<Vec<SearchOutput>> {
-    if threads <= 1 || crops.len() <= 1 {
-        return crops.iter().map(|x| plan.search(x, zf)).collect();
-    }
-    let share = crops.len().div_ceil(threads);
-    let one = crate::Threads::new(1);
-    std::thread::scope(|s| {
-        let handles: Vec<_> = crops
-            .chunks(share)
-            .map(|chunk| {
-                let one = one.clone();
-                s.spawn(move || one.run(|| chunk.iter().map(|x| plan.search(x, zf)).collect::<Vec<_>>()))
-            })
-            .collect();
-        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
-    })
 }
 
 /// Every cell's decoded box, score, penalty and penalised score, and the crop's scale.
