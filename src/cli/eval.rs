@@ -77,7 +77,13 @@ struct LongTerm {
 
 /// The long-term figures of the results in `dir` (`None`, with a note, when a video has no
 /// confidences file).
-fn long_term(dataset: &Dataset, dir: &Path, name: &str) -> anyhow::Result<Option<LongTerm>> {
+/// `results` are the boxes [`score`] read, by video.
+fn long_term(
+    dataset: &Dataset,
+    dir: &Path,
+    name: &str,
+    results: &BTreeMap<String, Vec<[f64; 4]>>,
+) -> anyhow::Result<Option<LongTerm>> {
     let mut per_video = vec![];
     for v in &dataset.videos {
         let boxes = dir.join(format!("{}.txt", v.name));
@@ -96,7 +102,7 @@ fn long_term(dataset: &Dataset, dir: &Path, name: &str) -> anyhow::Result<Option
         let first = v.frames.first().ok_or_else(|| anyhow::anyhow!("video {}: no frames", v.name))?;
         let (w, h) = image::image_dimensions(first)
             .with_context(|| format!("{}: cannot read the frame's size", first.display()))?;
-        per_video.push((parse_boxes(&boxes, n)?, conf, (f64::from(w), f64::from(h)), v));
+        per_video.push((&results[&v.name], conf, (f64::from(w), f64::from(h)), v));
     }
     let all: Vec<f64> = per_video.iter().flat_map(|p| p.1.iter().copied()).collect();
     let thresholds = longterm::thresholds(&all);
@@ -162,17 +168,19 @@ fn tracker_names(root: &Path) -> anyhow::Result<Vec<String>> {
     Ok(names)
 }
 
-/// Score one tracker: its curves per video.
-fn score(dataset: &Dataset, dir: &Path) -> anyhow::Result<BTreeMap<String, Curves>> {
-    let mut out = BTreeMap::new();
+/// Score one tracker: its curves per video, and the boxes read, per video.
+type Scored = (BTreeMap<String, Curves>, BTreeMap<String, Vec<[f64; 4]>>);
+fn score(dataset: &Dataset, dir: &Path) -> anyhow::Result<Scored> {
+    let (mut out, mut results) = (BTreeMap::new(), BTreeMap::new());
     for v in &dataset.videos {
         let path = dir.join(format!("{}.txt", v.name));
         anyhow::ensure!(path.is_file(), "{}: missing (video {} of {})", path.display(), v.name, dataset.name);
         let result = parse_boxes(&path, v.groundtruth.len())?;
         let curves = evaluate(&v.groundtruth, &result).map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
         out.insert(v.name.clone(), curves);
+        results.insert(v.name.clone(), result);
     }
-    Ok(out)
+    Ok((out, results))
 }
 
 fn table(title: &str, rows: &[(String, Scores)]) {
@@ -212,7 +220,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
     let absent = dataset.videos.iter().any(|v| v.groundtruth.iter().any(|g| !longterm::present(*g)));
     let mut reports = vec![];
     for name in &names {
-        let per_video = score(&dataset, &root.join(name))?;
+        let (per_video, results) = score(&dataset, &root.join(name))?;
         let all = summarise(per_video.values());
         let videos = per_video.iter().map(|(v, c)| (v.clone(), Scores::from(&summarise([c])))).collect();
         let attribute_curves: BTreeMap<String, Summary> =
@@ -229,7 +237,7 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
             videos,
             attributes,
             attribute_curves,
-            long_term: if absent { long_term(&dataset, &root.join(name), name)? } else { None },
+            long_term: if absent { long_term(&dataset, &root.join(name), name, &results)? } else { None },
         });
     }
     // pysot's order: success, best first.
