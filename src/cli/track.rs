@@ -354,7 +354,7 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     if several {
         lines.insert(1, targets_line(&runs, jobs));
     }
-    lines.into_iter().for_each(|l| if a.jsonl { eprintln!("{l}") } else { println!("{l}") });
+    lines.into_iter().for_each(say);
     Ok(())
 }
 
