@@ -11,7 +11,8 @@ use crate::{iou, load_frame, read_frame, Damaged, InputError};
 /// Where one frame's time went.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct FrameTiming {
-    /// Reading and decoding the frame.
+    /// Waiting for the frame: reading and decoding it, or, when frames are read ahead on a thread
+    /// of their own ([`read_ahead`]), what of that the tracker still had to wait for.
     pub decode: Duration,
     /// Cutting and resizing the crop.
     pub crop: Duration,
@@ -154,17 +155,18 @@ impl<F: FnMut(usize) -> Frame> Frames for MadeFrames<F> {
     }
 }
 
-/// Track through `frames` from `init` on the first. `on_frame(i, frame, prediction)` sees every
-/// frame and what the tracker said of it as it goes (for drawing, output or progress; the first
-/// frame's is the init box, score 1, `tracking`); an error from it stops the run.
+/// Track through `frames` from `init` on the first, each frame decoded while the tracker works
+/// on the one before ([`read_ahead`]). `on_frame(i, frame, prediction)` sees every frame and what
+/// the tracker said of it as it goes (for drawing, output or progress; the first frame's is the
+/// init box, score 1, `tracking`); an error from it stops the run.
 pub fn track(
     tracker: &mut Tracker,
-    frames: impl Frames,
+    frames: impl Frames + Send,
     init: BBox,
     on_frame: impl FnMut(usize, &Frame, &Prediction) -> Result<(), String>,
 ) -> Result<TrackRun, TrackError> {
     let n = frames.len();
-    track_stream(tracker, in_order(frames), init, n, on_frame)
+    read_ahead(frames, |stream| track_stream(tracker, stream, init, n, on_frame))
 }
 
 /// Frames that come one after another (a video, a camera, a stream: the length need not be
@@ -197,6 +199,50 @@ impl<F: Frames> FrameStream for InOrder<F> {
     }
     fn label(&self) -> String {
         self.frames.label(self.next.saturating_sub(1))
+    }
+}
+
+/// [`Frames`] one after another, as [`in_order`] gives them (the same frames, the same errors,
+/// the same labels), but each decoded on a thread of its own while the caller works on the one
+/// before: one frame ahead, so that decoding leaves the per-frame time when a core is free for
+/// it. `body` runs on the calling thread with the stream; the reading thread stops when the
+/// stream is dropped or a frame fails, and is joined before this returns.
+pub fn read_ahead<F: Frames + Send, R>(frames: F, body: impl FnOnce(ReadAhead) -> R) -> R {
+    std::thread::scope(|scope| {
+        // A rendezvous channel: the reader decodes frame i + 1 while frame i is tracked, then
+        // waits until it is asked for.
+        let (tx, rx) = std::sync::mpsc::sync_channel(0);
+        let mut frames = frames;
+        let n = frames.len();
+        scope.spawn(move || {
+            for i in 0..n {
+                let frame = frames.frame(i);
+                let failed = frame.is_err();
+                if tx.send((frame, frames.label(i))).is_err() || failed {
+                    return;
+                }
+            }
+        });
+        body(ReadAhead { rx, label: String::new() })
+    })
+}
+
+/// The stream [`read_ahead`] gives.
+pub struct ReadAhead {
+    rx: std::sync::mpsc::Receiver<(Result<Frame, InputError>, String)>,
+    label: String,
+}
+
+impl FrameStream for ReadAhead {
+    fn next_frame(&mut self) -> Result<Option<Frame>, TrackError> {
+        // The reader hangs up after the last frame (or, having panicked, early: the scope then
+        // passes its panic on).
+        let Ok((frame, label)) = self.rx.recv() else { return Ok(None) };
+        self.label = label;
+        Ok(Some(frame?))
+    }
+    fn label(&self) -> String {
+        self.label.clone()
     }
 }
 
@@ -331,5 +377,66 @@ impl TrackRun {
         }
         ms.sort_by(f64::total_cmp);
         ms[ms.len() / 2]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Frames 0, 1, ... whose first pixel is their index; frame `bad` fails.
+    struct Numbered {
+        count: usize,
+        bad: usize,
+    }
+
+    impl Frames for Numbered {
+        fn len(&self) -> usize {
+            self.count
+        }
+        fn frame(&mut self, i: usize) -> Result<Frame, InputError> {
+            if i == self.bad {
+                return Err(InputError::new(std::path::Path::new(&self.label(i)), "cut short"));
+            }
+            Ok(Frame::from_bgr(2, 1, vec![i as u8, 0, 0, 0, 0, 0]).unwrap())
+        }
+        fn label(&self, i: usize) -> String {
+            format!("frame{i}.jpg")
+        }
+    }
+
+    /// What a stream gives until it ends or fails: the frames' first pixels, and the error with
+    /// the stream's label at that point.
+    fn drain(mut s: impl FrameStream) -> (Vec<u8>, Option<(String, String)>) {
+        let mut got = vec![];
+        loop {
+            match s.next_frame() {
+                Ok(Some(f)) => got.push(f.bgr()[0]),
+                Ok(None) => return (got, None),
+                Err(e) => return (got, Some((e.to_string(), s.label()))),
+            }
+        }
+    }
+
+    #[test]
+    fn read_ahead_gives_what_in_order_gives() {
+        for (count, bad) in [(5, usize::MAX), (5, 3), (5, 0), (0, usize::MAX)] {
+            let plain = drain(in_order(Numbered { count, bad }));
+            let ahead = read_ahead(Numbered { count, bad }, drain);
+            assert_eq!(plain, ahead, "{count} frames, frame {bad} failing");
+        }
+        let (got, err) = read_ahead(Numbered { count: 5, bad: 3 }, drain);
+        assert_eq!(got, [0, 1, 2]);
+        let (msg, label) = err.unwrap();
+        assert!(msg.contains("frame3.jpg") && msg.contains("cut short"), "{msg}");
+        assert_eq!(label, "frame3.jpg");
+    }
+
+    #[test]
+    fn read_ahead_stops_when_the_stream_is_dropped() {
+        // The body takes one frame of a thousand and returns: the reader must not run on (or
+        // block) once the stream is gone.
+        let first = read_ahead(Numbered { count: 1000, bad: usize::MAX }, |mut s| s.next_frame().unwrap().unwrap());
+        assert_eq!(first.bgr()[0], 0);
     }
 }
