@@ -287,6 +287,11 @@ fn bench_reports_stages_and_operators() {
     let ops = report["top_ops"].as_array().unwrap();
     assert_eq!(ops.len(), 12);
     assert!(ops.iter().any(|o| o["gflops"].as_f64().unwrap() > 0.0));
+    // The template graph's profile too: its convolutions, with their rates.
+    let template = report["template_ops"].as_array().unwrap();
+    assert_eq!(template.len(), 12);
+    assert!(template.iter().any(|o| o["op"] == "PackedConv" && o["gflops"].as_f64().unwrap() > 0.0), "{template:?}");
+    assert!(out.contains("slowest operators of the template graph"), "{out}");
 }
 
 /// `list_frames` takes jpg, png, bmp and webp: each lossless format decodes to the same pixels.

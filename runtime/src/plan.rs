@@ -232,37 +232,57 @@ impl Plan {
     /// tract's per-node profile of the search graph: each node timed over `runs` runs, slowest
     /// first.
     pub fn profile_search(&self, x: &[f32], zf: &TemplateFeatures, runs: usize) -> Result<Vec<NodeTime>> {
-        let runs = runs.max(1);
-        let model = self.search.model();
-        let mut totals = vec![std::time::Duration::ZERO; model.nodes().len()];
-        let mut state = TypedSimpleState::new(&self.search).map_err(|e| run_err("search", e))?;
-        for _ in 0..runs {
+        profile(&self.search, "search", runs, || {
             let input = tensor("search", &self.manifest.search.inputs[0].shape, x)?;
             let mut inputs: TVec<TValue> = tvec![input.into()];
             inputs.extend(zf.0.iter().cloned());
-            state
-                .run_plan_with_eval(inputs, |ctx, st, node, inputs| {
-                    let t = std::time::Instant::now();
-                    let r = tract_nnef::tract_core::plan::eval(ctx, st, node, inputs);
-                    totals[node.id] += t.elapsed();
-                    r
-                })
-                .map_err(|e| run_err("search", e))?;
-        }
-        let mut out: Vec<NodeTime> = model
-            .nodes()
-            .iter()
-            .map(|n| NodeTime {
-                name: n.name.clone(),
-                op: n.op().name().to_string(),
-                time: totals[n.id] / runs as u32,
-                flop: node_flop(model, n),
-                kernel: crate::ops::kernel_name(n.op().name().as_ref(), &n.op().info().unwrap_or_default().join("; ")),
-            })
-            .collect();
-        out.sort_by_key(|n| std::cmp::Reverse(n.time));
-        Ok(out)
+            Ok(inputs)
+        })
     }
+
+    /// tract's per-node profile of the template graph on the exemplar crop `z` (as
+    /// [`Plan::profile_search`]).
+    pub fn profile_template(&self, z: &[f32], runs: usize) -> Result<Vec<NodeTime>> {
+        profile(&self.template, "template", runs, || {
+            Ok(tvec![tensor("template", &self.manifest.template.inputs[0].shape, z)?.into()])
+        })
+    }
+}
+
+/// Each node of `plan` timed over `runs` runs on `inputs()`, slowest first.
+fn profile(
+    plan: &Runnable,
+    graph: &'static str,
+    runs: usize,
+    inputs: impl Fn() -> Result<TVec<TValue>>,
+) -> Result<Vec<NodeTime>> {
+    let runs = runs.max(1);
+    let model = plan.model();
+    let mut totals = vec![std::time::Duration::ZERO; model.nodes().len()];
+    let mut state = TypedSimpleState::new(plan).map_err(|e| run_err(graph, e))?;
+    for _ in 0..runs {
+        state
+            .run_plan_with_eval(inputs()?, |ctx, st, node, inputs| {
+                let t = std::time::Instant::now();
+                let r = tract_nnef::tract_core::plan::eval(ctx, st, node, inputs);
+                totals[node.id] += t.elapsed();
+                r
+            })
+            .map_err(|e| run_err(graph, e))?;
+    }
+    let mut out: Vec<NodeTime> = model
+        .nodes()
+        .iter()
+        .map(|n| NodeTime {
+            name: n.name.clone(),
+            op: n.op().name().to_string(),
+            time: totals[n.id] / runs as u32,
+            flop: node_flop(model, n),
+            kernel: crate::ops::kernel_name(n.op().name().as_ref(), &n.op().info().unwrap_or_default().join("; ")),
+        })
+        .collect();
+    out.sort_by_key(|n| std::cmp::Reverse(n.time));
+    Ok(out)
 }
 
 /// 2 x the multiply-accumulates tract's cost model gives a node (0 when it has none).
@@ -329,8 +349,11 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             )));
         }
     }
-    let model = knobs
-        .enter(|| {
+    // A graph that parses and has the manifest's shapes can still be malformed inside (a crafted
+    // plan carries its own digest): a panic in tract's declutter or codegen, as in its parse, is
+    // an error naming the file.
+    let optimise = || {
+        knobs.enter(|| {
             // Declutter first: constants reach the convolutions' weight and bias inputs (the
             // graph read from NNEF is not in the form the runtime's operators match).
             let mut model = model.into_decluttered()?;
@@ -338,8 +361,10 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
                 crate::accelerate(&mut model)?;
             }
             model.optimize()?; // codegen only: the model is decluttered already
-            Ok(model)
+            TypedSimplePlan::new(model)
         })
-        .map_err(tract_err)?;
-    TypedSimplePlan::new(model).map_err(tract_err)
+    };
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(optimise))
+        .map_err(|_| bad("tract cannot optimise it: the graph is malformed".into()))?
+        .map_err(tract_err)
 }

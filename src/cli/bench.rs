@@ -112,6 +112,37 @@ struct Op {
     kernel: String,
 }
 
+/// The `top` slowest of a profile, with their share of it and their rate.
+fn slowest(prof: &[prl_runtime::NodeTime], top: usize) -> Vec<Op> {
+    let total: f64 = prof.iter().map(|n| n.time.as_secs_f64()).sum();
+    prof.iter()
+        .take(top)
+        .map(|n| {
+            let secs = n.time.as_secs_f64();
+            Op {
+                name: n.name.clone(),
+                op: n.op.clone(),
+                ms: secs * 1e3,
+                share: secs / total,
+                gflops: if secs > 0.0 && n.flop > 0.0 { n.flop / secs / 1e9 } else { 0.0 },
+                kernel: n.kernel.clone(),
+            }
+        })
+        .collect()
+}
+
+/// Print a profile's slowest operators under `title`.
+fn print_ops(title: &str, ops: &[Op]) {
+    let total = ops.first().map_or(0.0, |o| if o.share > 0.0 { o.ms / o.share } else { 0.0 });
+    println!("\nslowest operators of the {title} (tract profile, {total:.1} ms in all):");
+    println!("{:>9} {:>6} {:>8}  {:<16} {:<24} node", "ms", "share", "GFLOP/s", "op", "kernel");
+    for o in ops {
+        let gflops = if o.gflops > 0.0 { format!("{:.1}", o.gflops) } else { "-".into() };
+        let kernel = if o.kernel.is_empty() { "-" } else { &o.kernel };
+        println!("{:>9.2} {:>5.1}% {:>8}  {:<16} {:<24} {}", o.ms, o.share * 100.0, gflops, o.op, kernel, o.name);
+    }
+}
+
 /// The network module a node of the search graph belongs to, from its name (PRL-Track's
 /// modules; an imported model's `backbone/...` and `head/...` nodes).
 fn module_of(node: &str) -> &'static str {
@@ -147,6 +178,8 @@ struct Report {
     plan_load_ms: f64,
     peak_rss_mb: Option<f64>,
     top_ops: Vec<Op>,
+    /// The template graph's slowest operators.
+    template_ops: Vec<Op>,
     modules: Vec<Module>,
     #[serde(skip_serializing_if = "Option::is_none")]
     targets: Option<Targets>,
@@ -222,21 +255,15 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     }
     let prof = if a.top > 0 { tracker.plan().profile_search(&x, zf, a.runs.min(5))? } else { vec![] };
     let total: f64 = prof.iter().map(|n| n.time.as_secs_f64()).sum();
-    let top_ops = prof
-        .iter()
-        .take(a.top)
-        .map(|n| {
-            let secs = n.time.as_secs_f64();
-            Op {
-                name: n.name.clone(),
-                op: n.op.clone(),
-                ms: secs * 1e3,
-                share: secs / total,
-                gflops: if secs > 0.0 && n.flop > 0.0 { n.flop / secs / 1e9 } else { 0.0 },
-                kernel: n.kernel.clone(),
-            }
-        })
-        .collect();
+    let top_ops = slowest(&prof, a.top);
+    // The template graph's own profile (it runs once per target, and on every re-detection).
+    let template_prof = if a.top > 0 {
+        let z = tracker.exemplar_crop(&frame, init)?;
+        tracker.plan().profile_template(&z, a.runs.min(5))?
+    } else {
+        vec![]
+    };
+    let template_ops = slowest(&template_prof, a.top);
     let mut modules: Vec<Module> = vec![];
     for n in &prof {
         let (m, secs) = (module_of(&n.name), n.time.as_secs_f64());
@@ -266,6 +293,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         plan_load_ms: load.as_secs_f64() * 1e3,
         peak_rss_mb: super::peak_rss_mb(),
         top_ops,
+        template_ops,
         modules,
         targets,
     };
@@ -310,17 +338,12 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     if report.top_ops.is_empty() {
         return finish(&a, &report);
     }
-    println!("\nslowest operators of the search graph (tract profile, {:.1} ms in all):", total * 1e3);
-    println!("{:>9} {:>6} {:>8}  {:<16} {:<24} node", "ms", "share", "GFLOP/s", "op", "kernel");
-    for o in &report.top_ops {
-        let gflops = if o.gflops > 0.0 { format!("{:.1}", o.gflops) } else { "-".into() };
-        let kernel = if o.kernel.is_empty() { "-" } else { &o.kernel };
-        println!("{:>9.2} {:>5.1}% {:>8}  {:<16} {:<24} {}", o.ms, o.share * 100.0, gflops, o.op, kernel, o.name);
-    }
+    print_ops("search graph", &report.top_ops);
     println!("\nsearch graph time by module (same profile):");
     for m in &report.modules {
         println!("{:>9.2} {:>5.1}%  {}", m.ms, m.share * 100.0, m.module);
     }
+    print_ops("template graph", &report.template_ops);
     finish(&a, &report)
 }
 
