@@ -1,6 +1,7 @@
 //! Checkpoint import: PyTorch `.pth` archives (read without Python, the pickle interpreted and
 //! never executed) and `.safetensors` files, into a flat map of named tensors.
 
+mod cycles;
 mod pickle;
 mod safetensors_file;
 mod torch;

@@ -108,6 +108,42 @@ impl Drop for Value {
 }
 
 impl Value {
+    /// Child `i` of a value holding others (a sequence's items; a dict's keys and values in
+    /// turn; a call's callee, arguments and state; a persistent id's value), `None` past the last.
+    pub(super) fn child(&self, i: usize) -> Option<Value> {
+        match self {
+            Value::Tuple(t) => t.get(i).cloned(),
+            Value::List(l) => l.borrow().get(i).cloned(),
+            Value::Dict(d) => d.borrow().items.get(i / 2).map(|(k, v)| if i % 2 == 0 { k } else { v }.clone()),
+            Value::Call(c) => [Some(&c.callee), Some(&c.args), c.state.as_ref()].get(i).copied().flatten().cloned(),
+            Value::Persistent(p) => (i == 0).then(|| (**p).clone()),
+            _ => None,
+        }
+    }
+
+    /// What identifies a value holding others (its shared payload's address); `None` for the
+    /// rest.
+    pub(super) fn node(&self) -> Option<*const ()> {
+        match self {
+            Value::Tuple(t) => Some(Rc::as_ptr(t) as *const ()),
+            Value::List(l) => Some(Rc::as_ptr(l) as *const ()),
+            Value::Dict(d) => Some(Rc::as_ptr(d) as *const ()),
+            Value::Call(c) => Some(Rc::as_ptr(c) as *const ()),
+            Value::Persistent(p) => Some(Rc::as_ptr(p) as *const ()),
+            _ => None,
+        }
+    }
+
+    /// Empty a list or dict (the one kind of value a stream can change after making it, so the
+    /// one kind a cycle passes through).
+    pub(super) fn empty(&self) {
+        match self {
+            Value::List(l) => drop(std::mem::take(&mut *l.borrow_mut())),
+            Value::Dict(d) => drop(std::mem::take(&mut *d.borrow_mut())),
+            _ => {}
+        }
+    }
+
     /// Move out the children this value alone owns (shared ones stay with their other owners).
     fn take_children(&mut self, out: &mut Vec<Value>) {
         let take = |v: &mut Value| std::mem::replace(v, Value::None);
@@ -222,6 +258,10 @@ pub enum PickleError {
     Opcode { op: u8, at: usize },
     #[error("malformed pickle at byte {at}: {what}")]
     Malformed { at: usize, what: &'static str },
+    /// A list or dict that holds itself through some chain of values: a state dict never does,
+    /// and reference counts would never free it.
+    #[error("the pickle builds a container that holds itself")]
+    Cycle,
 }
 
 struct Reader<'a> {
@@ -267,11 +307,20 @@ impl<'a> Reader<'a> {
 pub const MAX_WALK_DEPTH: usize = 16;
 
 /// Interpret a pickle stream (protocols 0-5, without out-of-band buffers) into a [`Value`].
+/// A stream that makes a container hold itself is refused ([`PickleError::Cycle`]), and what
+/// it made is freed.
 pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
+    let (mut stack, mut memo) = (Vec::new(), HashMap::new());
+    let result = interpret(buf, &mut stack, &mut memo);
+    // Everything the stream made is reachable from the result, the stack or the memo.
+    let cycle = super::cycles::break_cycles(result.iter().chain(&stack).chain(memo.values()));
+    result.and_then(|v| if cycle { Err(PickleError::Cycle) } else { Ok(v) })
+}
+
+/// The interpreter loop of [`parse`], on its stack and memo.
+fn interpret(buf: &[u8], stack: &mut Vec<Value>, memo: &mut HashMap<u64, Value>) -> Result<Value, PickleError> {
     let mut r = Reader { buf, pos: 0 };
-    let mut stack: Vec<Value> = Vec::new();
     let mut marks: Vec<usize> = Vec::new();
-    let mut memo: HashMap<u64, Value> = Default::default();
     // Items copied out of containers (BUILD on a dict, OrderedDict(...)): at most a few times
     // the stream's length, so that re-using one large container cannot make parsing quadratic.
     let mut budget = buf.len().saturating_mul(4).saturating_add(1 << 16);
