@@ -114,7 +114,7 @@ impl Value {
         match self {
             Value::Tuple(t) => t.get(i).cloned(),
             Value::List(l) => l.borrow().get(i).cloned(),
-            Value::Dict(d) => d.borrow().items.get(i / 2).map(|(k, v)| if i % 2 == 0 { k } else { v }.clone()),
+            Value::Dict(d) => d.borrow().items.get(i / 2).map(|(k, v)| if i.is_multiple_of(2) { k } else { v }.clone()),
             Value::Call(c) => [Some(&c.callee), Some(&c.args), c.state.as_ref()].get(i).copied().flatten().cloned(),
             Value::Persistent(p) => (i == 0).then(|| (**p).clone()),
             _ => None,
@@ -599,7 +599,7 @@ fn call(callee: Value, args: Value) -> Value {
 }
 
 fn pairs(items: Vec<Value>) -> Option<Vec<(Value, Value)>> {
-    if items.len() % 2 != 0 {
+    if !items.len().is_multiple_of(2) {
         return None;
     }
     let mut it = items.into_iter();
