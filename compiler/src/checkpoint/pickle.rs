@@ -311,14 +311,23 @@ pub const MAX_WALK_DEPTH: usize = 16;
 /// it made is freed.
 pub fn parse(buf: &[u8]) -> Result<Value, PickleError> {
     let (mut stack, mut memo) = (Vec::new(), HashMap::new());
-    let result = interpret(buf, &mut stack, &mut memo);
+    let mut shared = false;
+    let result = interpret(buf, &mut stack, &mut memo, &mut shared);
     // Everything the stream made is reachable from the result, the stack or the memo.
-    let cycle = super::cycles::break_cycles(result.iter().chain(&stack).chain(memo.values()));
+    // Only a list or dict changed while something else also held it can have come to hold itself
+    // (its new items would hold a reference to it): otherwise there is nothing to walk.
+    let cycle = shared && super::cycles::break_cycles(result.iter().chain(&stack).chain(memo.values()));
     result.and_then(|v| if cycle { Err(PickleError::Cycle) } else { Ok(v) })
 }
 
 /// The interpreter loop of [`parse`], on its stack and memo.
-fn interpret(buf: &[u8], stack: &mut Vec<Value>, memo: &mut HashMap<u64, Value>) -> Result<Value, PickleError> {
+/// `shared`: set when a list or dict is changed while something besides the stack holds it.
+fn interpret(
+    buf: &[u8],
+    stack: &mut Vec<Value>,
+    memo: &mut HashMap<u64, Value>,
+    shared: &mut bool,
+) -> Result<Value, PickleError> {
     let mut r = Reader { buf, pos: 0 };
     let mut marks: Vec<usize> = Vec::new();
     // Items copied out of containers (BUILD on a dict, OrderedDict(...)): at most a few times
@@ -469,26 +478,26 @@ fn interpret(buf: &[u8], stack: &mut Vec<Value>, memo: &mut HashMap<u64, Value>)
                 if op == 0x91 {
                     stack.push(Value::List(Rc::new(RefCell::new(items))))
                 } else {
-                    extend(stack.last(), items).ok_or(bad("ADDITEMS on non-set"))?
+                    extend(noted(stack.last(), shared), items).ok_or(bad("ADDITEMS on non-set"))?
                 }
             }
             b'a' => {
                 let v = pop!();
-                extend(stack.last(), vec![v]).ok_or(bad("APPEND on non-list"))?
+                extend(noted(stack.last(), shared), vec![v]).ok_or(bad("APPEND on non-list"))?
             }
             b'e' => {
                 let items = pop_mark!();
-                extend(stack.last(), items).ok_or(bad("APPENDS on non-list"))?
+                extend(noted(stack.last(), shared), items).ok_or(bad("APPENDS on non-list"))?
             }
             b's' => {
                 let v = pop!();
                 let k = pop!();
-                set_items(stack.last(), vec![(k, v)]).ok_or(bad("SETITEM on non-dict"))?
+                set_items(noted(stack.last(), shared), vec![(k, v)]).ok_or(bad("SETITEM on non-dict"))?
             }
             b'u' => {
                 let items = pop_mark!();
                 let items = pairs(items).ok_or(bad("odd SETITEMS"))?;
-                set_items(stack.last(), items).ok_or(bad("SETITEMS on non-dict"))?
+                set_items(noted(stack.last(), shared), items).ok_or(bad("SETITEMS on non-dict"))?
             }
             b'c' => {
                 let m = r.line()?;
@@ -524,6 +533,7 @@ fn interpret(buf: &[u8], stack: &mut Vec<Value>, memo: &mut HashMap<u64, Value>)
                     Value::Dict(d) => {
                         if let Some(items) = state.dict_items() {
                             spend!(items.len());
+                            *shared |= Rc::strong_count(d) > 1;
                             set_items(Some(&Value::Dict(d.clone())), items);
                         }
                     }
@@ -567,6 +577,16 @@ fn interpret(buf: &[u8], stack: &mut Vec<Value>, memo: &mut HashMap<u64, Value>)
             _ => return Err(PickleError::Opcode { op, at }),
         }
     }
+}
+
+/// `target`, with `shared` set if it is a list or dict something else also holds.
+fn noted<'v>(target: Option<&'v Value>, shared: &mut bool) -> Option<&'v Value> {
+    *shared |= match target {
+        Some(Value::List(l)) => Rc::strong_count(l) > 1,
+        Some(Value::Dict(d)) => Rc::strong_count(d) > 1,
+        _ => false,
+    };
+    target
 }
 
 fn is_ordered_dict(callee: &Value) -> bool {
