@@ -15,6 +15,7 @@ use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
+use super::conv_lanes::LanePack;
 use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits};
 
 /// Shape of one convolution: input `[N, ci, h, w]`, padding, kernel `kh` x `kw`, `co` outputs.
@@ -100,12 +101,14 @@ fn scatter_row_s2(phases: &mut [f32], row: &[f32], yp: usize, pad_left: usize, h
 
 /// `out[n,o,y,x] = bias[o] + Σ_{c,i,j} pad(input)[n,c,y+i,x+j]·weight[o,c,i,j]`, stride 1, with
 /// the weights packed `[o / 8][(c,i,j)][o % 8]` when the op is made (taps `(c,i,j)` whose
-/// weights are all zero left out).
+/// weights are all zero left out), or, on AVX-512 for 32 channels or more, packed for tiles
+/// with the channels in the vector lanes ([`super::conv_lanes`]).
 #[derive(Clone)]
 pub struct PackedConv {
     shape: ConvShape,
     layout: Arc<Layout>,
     weights: Arc<Vec<f32>>,
+    lanes: Option<Arc<LanePack>>,
     bias: Arc<Vec<f32>>,
 }
 
@@ -117,7 +120,11 @@ impl std::fmt::Debug for PackedConv {
 
 impl PartialEq for PackedConv {
     fn eq(&self, other: &Self) -> bool {
-        self.shape == other.shape && same_bits(&self.weights, &other.weights) && same_bits(&self.bias, &other.bias)
+        let lanes = |c: &PackedConv| c.lanes.as_ref().map(|l| l.values().to_vec()).unwrap_or_default();
+        self.shape == other.shape
+            && same_bits(&self.weights, &other.weights)
+            && same_bits(&lanes(self), &lanes(other))
+            && same_bits(&self.bias, &other.bias)
     }
 }
 
@@ -137,9 +144,15 @@ impl PackedConv {
         }
         let live: Vec<usize> = (0..taps).filter(|&t| nonzero[t]).collect();
         let blocks = shape.co.div_ceil(ROWS);
+        let lanes = match LanePack::registers_for(shape.co) {
+            Some(v) if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 => {
+                Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, v)))
+            }
+            _ => None,
+        };
         // Written in order, block by block: the block's rows are read as 8 streams.
-        let mut packed = Vec::with_capacity(blocks * live.len() * ROWS);
-        for rows in weight.chunks(ROWS * taps) {
+        let mut packed = Vec::with_capacity(if lanes.is_some() { 0 } else { blocks * live.len() * ROWS });
+        for rows in weight.chunks(ROWS * taps).filter(|_| lanes.is_none()) {
             for &t in &live {
                 packed.extend((0..ROWS).map(|r| rows.get(r * taps + t).copied().unwrap_or(0.0)));
             }
@@ -150,7 +163,7 @@ impl PackedConv {
         let (oh, ow) = shape.out();
         let offsets = shape.tap_offsets(shape.ci);
         let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp: wq, oh, ow };
-        Ok(PackedConv { shape, layout: Arc::new(layout), weights: Arc::new(packed), bias: Arc::new(bias) })
+        Ok(PackedConv { shape, layout: Arc::new(layout), weights: Arc::new(packed), lanes, bias: Arc::new(bias) })
     }
 
     /// The convolution's shape.
@@ -167,7 +180,14 @@ impl Op for PackedConv {
     fn info(&self) -> TractResult<Vec<String>> {
         let s = &self.shape;
         let (kh, kw, ci, co, taps) = (s.kh, s.kw, s.ci, s.co, self.layout.taps.len());
-        Ok(vec![format!("{kh}x{kw} kernel, stride {}, {ci} -> {co} channels, pad {:?}, {taps} taps", s.stride, s.pad)])
+        let tile = match &self.lanes {
+            Some(l) => format!("tiles of {} channels in lanes", l.channels()),
+            None => format!("tiles of {ROWS} channels"),
+        };
+        Ok(vec![format!(
+            "{kh}x{kw} kernel, stride {}, {ci} -> {co} channels, pad {:?}, {taps} taps, {tile}",
+            s.stride, s.pad
+        )])
     }
 
     op_as_typed_op!();
@@ -194,6 +214,10 @@ impl EvalOp for PackedConv {
                 let plane_in = phases * hq * wq;
                 for (c, src) in src.chunks_exact(h * w).enumerate() {
                     s.pad_plane(src, &mut padded[c * plane_in..(c + 1) * plane_in]);
+                }
+                if let Some(lanes) = &self.lanes {
+                    lanes.run(&self.layout, &padded, &self.bias, dst);
+                    continue;
                 }
                 par_chunks(dst, ROWS * plane, |b, out| {
                     let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
@@ -334,6 +358,11 @@ mod tests {
             // Stride 2 (the regulators' 3x3 convolutions: odd and even sizes, one-sided padding).
             (ConvShape { ci: 6, h: 21, w: 21, co: 10, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 }, false),
             (ConvShape { ci: 3, h: 10, w: 13, co: 9, kh: 4, kw: 3, pad: [0, 1, 2, 0], stride: 2 }, false),
+            // 32 channels or more: on AVX-512 the channels-in-lanes tiles (32 x 12 with a partial
+            // block; 48 x 8, stride 2; zero taps left out).
+            (ConvShape { ci: 7, h: 15, w: 17, co: 40, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, false),
+            (ConvShape { ci: 3, h: 23, w: 21, co: 96, kh: 5, kw: 5, pad: [0, 1, 0, 1], stride: 2 }, false),
+            (ConvShape { ci: 9, h: 8, w: 8, co: 48, kh: 3, kw: 3, pad: [0; 4], stride: 1 }, true),
         ] {
             let n_in = s.ci * s.h * s.w;
             let taps = s.ci * s.kh * s.kw;

@@ -13,6 +13,7 @@ mod attention;
 mod binary;
 mod conv;
 mod conv_kernel;
+mod conv_lanes;
 mod dwconv;
 mod dwconv_hwc;
 mod matmul;
