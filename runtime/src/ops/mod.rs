@@ -22,6 +22,7 @@ mod pool;
 mod qconv;
 mod qconv_amx;
 mod qconv_kernel;
+mod qconv_lanes;
 mod quant;
 mod xcorr;
 mod xcorr_kernel;

@@ -23,6 +23,7 @@ use super::qconv_amx::AmxWeights;
 #[cfg(target_arch = "aarch64")]
 use super::qconv_kernel::tiles_sdot;
 use super::qconv_kernel::{bytemuck_words, requantise, tiles_vnni};
+use super::qconv_lanes::{Geometry, QLanePack};
 use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits, ConvShape};
 
 /// Output channels per tile.
@@ -50,6 +51,9 @@ pub struct PackedQConv {
     out_dt: DatumType,
     /// The weights as AMX tiles, where the CPU has AMX-INT8 (then used instead of VNNI).
     amx: Option<Arc<AmxWeights>>,
+    /// The weights for VNNI tiles with the channels in the lanes (32 channels or more, no
+    /// AMX), used instead of `weights` on VNNI.
+    lanes: Option<Arc<QLanePack>>,
 }
 
 impl std::fmt::Debug for PackedQConv {
@@ -66,6 +70,7 @@ impl PartialEq for PackedQConv {
             && same_bits(&self.scale, &other.scale)
             && (self.x0, self.y0, self.out_dt) == (other.x0, other.y0, other.out_dt)
             && self.amx.is_some() == other.amx.is_some()
+            && self.lanes.as_ref().map(|l| l.values()) == other.lanes.as_ref().map(|l| l.values())
     }
 }
 
@@ -78,10 +83,11 @@ impl Op for PackedQConv {
 
     fn info(&self) -> TractResult<Vec<String>> {
         let s = &self.shape;
-        let isa = match (&self.amx, words_path()) {
-            (Some(_), _) => "AMX",
-            (None, Some(WordsPath::Sdot)) => "aarch64 SDOT",
-            _ => "AVX-512 VNNI",
+        let isa = match (&self.amx, &self.lanes, words_path()) {
+            (Some(_), _, _) => "AMX".to_string(),
+            (None, _, Some(WordsPath::Sdot)) => "aarch64 SDOT".to_string(),
+            (None, Some(l), _) => format!("AVX-512 VNNI, tiles of {} channels in lanes", l.channels()),
+            _ => "AVX-512 VNNI".to_string(),
         };
         Ok(vec![format!("{}x{} kernel, {} -> {} channels, u8 x i8 on {isa}, pad {:?}", s.kh, s.kw, s.ci, s.co, s.pad)])
     }
@@ -141,21 +147,27 @@ impl PackedQConv {
         let positions = (oh - 1) * wp + ow;
         // Words of four channels; room past the end for the last tile.
         let mut words = vec![u32::from_ne_bytes([self.x0; 4]); s.ci.div_ceil(4) * hp * wp + PX + wp];
-        let bytes: &mut [u8] = bytemuck_words(&mut words);
-        for c in 0..s.ci {
-            for y in 0..s.h {
-                let row = &src[(c * s.h + y) * s.w..(c * s.h + y + 1) * s.w];
-                let at = ((c / 4) * hp + y + s.pad[0]) * wp + s.pad[1];
-                for (x, &v) in row.iter().enumerate() {
-                    bytes[(at + x) * 4 + c % 4] = v;
+        // Each group of four channels fills its own words, the groups side by side on the threads.
+        par_chunks(bytemuck_words(&mut words), hp * wp * 4, |g, bytes| {
+            for c in 4 * g..(4 * g + 4).min(s.ci) {
+                for y in 0..s.h {
+                    let row = &src[(c * s.h + y) * s.w..(c * s.h + y + 1) * s.w];
+                    let at = (y + s.pad[0]) * wp + s.pad[1];
+                    for (x, &v) in row.iter().enumerate() {
+                        bytes[(at + x) * 4 + c % 4] = v;
+                    }
                 }
             }
-        }
+        });
         if path == WordsPath::Sdot {
             // i8 inputs for the signed dot product: x − 128, the top bit of every byte flipped.
             words.iter_mut().for_each(|w| *w ^= 0x8080_8080);
         }
         let (words, taps) = (&words, &self.taps);
+        if let (WordsPath::Vnni, Some(lanes)) = (path, &self.lanes) {
+            lanes.run(&Geometry { taps, wp, oh, ow }, words, self.y0, dst);
+            return;
+        }
         par_chunks(dst, ROWS * plane, |b, out| {
             let mut sums = vec![0i32; positions.div_ceil(PX) * PX * ROWS];
             let weights = &self.weights[b * taps.len() * ROWS..(b + 1) * taps.len() * ROWS];
@@ -316,6 +328,8 @@ impl PackedQConv {
         let groups = ci.div_ceil(4) * kh * kw;
         let blocks = co.div_ceil(ROWS);
         let mut words = vec![[0i8; 4]; blocks * groups * ROWS];
+        // The same words as `[co][groups]`, for the channels-in-lanes packing.
+        let mut by_channel = vec![[0i8; 4]; co * groups];
         let mut offset = vec![0i32; blocks * ROWS];
         let mut wsum = vec![0i32; blocks * ROWS];
         let mut scale = vec![0f32; blocks * ROWS];
@@ -328,6 +342,7 @@ impl PackedQConv {
                         sum += v as i32;
                         let g = ((c / 4) * kh + i) * kw + j;
                         words[((o / ROWS) * groups + g) * ROWS + o % ROWS][c % 4] = v;
+                        by_channel[o * groups + g][c % 4] = v;
                     }
                 }
             }
@@ -335,8 +350,16 @@ impl PackedQConv {
             wsum[o] = sum;
             scale[o] = q.x_scale * q.k_scale[o] / q.y_scale;
         }
-        let weights = words.iter().map(|b| i32::from_ne_bytes(b.map(|v| v as u8))).collect();
+        let word = |b: &[i8; 4]| i32::from_ne_bytes(b.map(|v| v as u8));
         let amx = crate::isa().amx.then(|| Arc::new(AmxWeights::new(&shape, kernel)));
+        let lanes = match QLanePack::registers_for(co) {
+            Some(v) if amx.is_none() && words_path() == Some(WordsPath::Vnni) => {
+                let by_channel: Vec<i32> = by_channel.iter().map(word).collect();
+                Some(Arc::new(QLanePack::new(&by_channel, groups, co, v, &offset, &scale)))
+            }
+            _ => None,
+        };
+        let weights = words.iter().map(word).collect();
         Ok(PackedQConv {
             taps: Arc::new(shape.tap_offsets(ci.div_ceil(4))),
             shape,
@@ -348,6 +371,7 @@ impl PackedQConv {
             y0: q.y0,
             out_dt,
             amx,
+            lanes,
         })
     }
 }
@@ -409,9 +433,11 @@ mod tests {
         let q = QuantParams { x0: 7, x_scale: 0.02, k_scale, y0: 100, y_scale: 0.05 };
         let amx = PackedQConv::new(s.clone(), &kernel, &bias, q, u8::datum_type()).unwrap();
         let vnni = PackedQConv { amx: None, ..amx.clone() };
+        // The positions-in-lanes tiles too, where the channels-in-lanes ones were packed.
+        let rows = PackedQConv { lanes: None, ..vnni.clone() };
         let x = tract_ndarray::Array4::from_shape_vec((2, s.ci, s.h, s.w), input).unwrap().into_tensor();
         let words = if words_path() == Some(WordsPath::Sdot) { "SDOT" } else { "VNNI" };
-        for (op, isa) in [(&amx, if amx.amx.is_some() { "AMX" } else { words }), (&vnni, words)] {
+        for (op, isa) in [(&amx, if amx.amx.is_some() { "AMX" } else { words }), (&vnni, words), (&rows, words)] {
             let out = op.eval(&EvalContext::out_of_plan(), tvec![x.clone().into_tvalue()]).unwrap();
             let out = out[0].try_as_plain_ram().unwrap();
             let got = out.as_slice::<u8>().unwrap();
@@ -430,5 +456,7 @@ mod tests {
         // 5x5 kernel without padding, wide rows that end inside a block.
         check(ConvShape { ci: 70, h: 14, w: 19, co: 40, kh: 5, kw: 5, pad: [0; 4], stride: 1 });
         check(ConvShape { ci: 128, h: 6, w: 6, co: 32, kh: 1, kw: 1, pad: [0, 2, 1, 0], stride: 1 });
+        // 96 outputs: two blocks of 48 channels in lanes (on VNNI), 600 tap groups in 5 passes.
+        check(ConvShape { ci: 96, h: 9, w: 12, co: 96, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 });
     }
 }

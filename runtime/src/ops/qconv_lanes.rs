@@ -1,0 +1,318 @@
+//! [`super::PackedQConv`] on AVX-512 VNNI with the output channels in the vector lanes: the
+//! integer form of [`super::conv_lanes`].
+//!
+//! A tile is `16·V` output channels (`V` registers of i32 lanes) by `P` consecutive positions:
+//! per tap group (four input channels of one tap, one 32-bit word of u8 inputs), `V` aligned
+//! loads of weight words, `P` broadcasts of one input word each and `V·P` `vpdpbusd`. The
+//! positions-in-lanes tile loads 64 bytes of input words from any offset (a split cache line
+//! 15 times in 16). The sums are exact integers either way; the requantisation is the scalar
+//! formula lane by lane (each lane its channel's offset and scale), so the bytes are the same.
+
+use super::conv_lanes::LanePack;
+use super::{par_for, SyncPtr};
+
+/// Output channels per register.
+const L: usize = 16;
+/// Tap groups per pass over the tiles (a pass's weights, at most 128 x 48 words, stay in L1).
+const CHUNK: usize = 128;
+
+/// One 64-byte line of weight words (every register loads aligned).
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Line([i32; L]);
+
+/// Weight words packed for tiles of `16·v` channels (`[block][group][16·v]`, zero past the
+/// last channel), with each channel's requantisation.
+pub(crate) struct QLanePack {
+    v: usize,
+    groups: usize,
+    co: usize,
+    lines: Vec<Line>,
+    /// Per channel, padded to whole blocks: `bias − x0·Σw` and the scale.
+    offset: Vec<i32>,
+    scale: Vec<f32>,
+}
+
+/// Where a convolution's words lie: the word offset of each tap group, the row stride of the
+/// padded input and the output's size.
+pub(crate) struct Geometry<'a> {
+    pub taps: &'a [usize],
+    pub wp: usize,
+    pub oh: usize,
+    pub ow: usize,
+}
+
+impl Geometry<'_> {
+    /// Wide positions covering every output.
+    fn positions(&self) -> usize {
+        (self.oh - 1) * self.wp + self.ow
+    }
+}
+
+impl QLanePack {
+    /// The tile for `co` channels (as [`LanePack::registers_for`]), or `None`.
+    pub(crate) fn registers_for(co: usize) -> Option<usize> {
+        LanePack::registers_for(co)
+    }
+
+    /// Pack `words` (`[co][groups]`, four i8 weights each) for `v` registers.
+    pub(crate) fn new(words: &[i32], groups: usize, co: usize, v: usize, offset: &[i32], scale: &[f32]) -> QLanePack {
+        let oc = L * v;
+        let blocks = co.div_ceil(oc);
+        let mut lines = Vec::with_capacity(blocks * groups * v);
+        for b in 0..blocks {
+            for g in 0..groups {
+                for k in 0..v {
+                    let mut line = Line([0; L]);
+                    for (r, w) in line.0.iter_mut().enumerate() {
+                        let o = b * oc + k * L + r;
+                        if o < co {
+                            *w = words[o * groups + g];
+                        }
+                    }
+                    lines.push(line);
+                }
+            }
+        }
+        let padded = |o: usize| o < co;
+        let offset = (0..blocks * oc).map(|o| if padded(o) { offset[o] } else { 0 }).collect();
+        let scale = (0..blocks * oc).map(|o| if padded(o) { scale[o] } else { 0.0 }).collect();
+        QLanePack { v, groups, co, lines, offset, scale }
+    }
+
+    /// Channels per tile.
+    pub(crate) fn channels(&self) -> usize {
+        L * self.v
+    }
+
+    /// Positions per tile.
+    fn positions(&self) -> usize {
+        if self.v == 3 {
+            8
+        } else {
+            12
+        }
+    }
+
+    /// The packed words as one slice.
+    pub(crate) fn values(&self) -> &[i32] {
+        // SAFETY: `Line` is `repr(C)` over `[i32; L]`, 64 bytes with no padding: the lines are
+        // `L · len` contiguous, initialised i32.
+        unsafe { std::slice::from_raw_parts(self.lines.as_ptr().cast::<i32>(), self.lines.len() * L) }
+    }
+
+    /// `out` (`co` planes of `oh·ow` bytes): the requantised convolution of `words` (u8 inputs,
+    /// four channels a word, extending `P` words past the last tap of the last position), split
+    /// over tract's threads by channel block and, where there are few blocks, by runs of
+    /// positions.
+    pub(crate) fn run(&self, g: &Geometry, words: &[u32], y0: u8, out: &mut [u8]) {
+        let (oc, px) = (self.channels(), self.positions());
+        assert!(self.lines.len() * L == self.co.div_ceil(oc) * self.groups * oc && g.taps.len() == self.groups);
+        assert!(g.taps.iter().all(|&t| t + g.positions() + px <= words.len()));
+        assert!(out.len() == self.co * g.oh * g.ow);
+        let blocks = self.co.div_ceil(oc);
+        let n_tiles = g.positions().div_ceil(px);
+        let parts = 12usize.div_ceil(blocks).clamp(1, n_tiles);
+        let per_part = n_tiles.div_ceil(parts);
+        let dst = SyncPtr(out.as_mut_ptr());
+        par_for(blocks * parts, |item| {
+            let (b, part) = (item / parts, item % parts);
+            let first = part * per_part;
+            let count = per_part.min(n_tiles.saturating_sub(first));
+            if count == 0 {
+                return;
+            }
+            let weights = &self.values()[b * self.groups * oc..(b + 1) * self.groups * oc];
+            let mut sums = vec![0i32; count * oc * px];
+            match self.v {
+                // SAFETY: `QLanePack`s are made only where the CPU has AVX-512 VNNI
+                // (`PackedQConv::new`); every read stays in `words` (asserted above) and
+                // `weights`.
+                #[cfg(target_arch = "x86_64")]
+                3 if crate::isa().vnni => unsafe { tiles_vnni::<3, 8>(g, words, weights, first, &mut sums) },
+                // SAFETY: as above.
+                #[cfg(target_arch = "x86_64")]
+                2 if crate::isa().vnni => unsafe { tiles_vnni::<2, 12>(g, words, weights, first, &mut sums) },
+                _ => tiles(g, oc, px, words, weights, first, &mut sums),
+            }
+            let rows = oc.min(self.co - b * oc);
+            let plane = g.oh * g.ow;
+            let offset = &self.offset[b * oc..(b + 1) * oc];
+            let scale = &self.scale[b * oc..(b + 1) * oc];
+            let mut bytes = vec![0u8; oc];
+            for (k, tile) in sums.chunks_exact(oc * px).enumerate() {
+                for (q, s) in tile.chunks_exact(oc).enumerate() {
+                    let p = (first + k) * px + q;
+                    let (y, x) = (p / g.wp, p % g.wp);
+                    if p >= g.positions() || x >= g.ow {
+                        continue;
+                    }
+                    requantise_lanes(s, offset, scale, y0, &mut bytes);
+                    for (r, &v) in bytes[..rows].iter().enumerate() {
+                        // SAFETY: `b·oc + r < co` and `y·ow + x < plane`, within `out`
+                        // (asserted); each (channel, position) belongs to one item only.
+                        unsafe { *dst.at((b * oc + r) * plane + y * g.ow + x) = v };
+                    }
+                }
+            }
+        });
+    }
+}
+
+/// `out[r] = sat_u8(round_half_even((sums[r] + offset[r]) · scale[r]) + y0)`, lane by lane:
+/// the scalar formula of [`super::qconv_kernel::requantise`] with one channel per lane.
+fn requantise_lanes(sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, out: &mut [u8]) {
+    #[cfg(target_arch = "x86_64")]
+    if crate::isa().avx512 {
+        for (((s, o), c), out) in
+            sums.chunks_exact(L).zip(offset.chunks_exact(L)).zip(scale.chunks_exact(L)).zip(out.chunks_exact_mut(L))
+        {
+            // SAFETY: the CPU has AVX-512F; 16 values in each slice.
+            unsafe { requant16_lanes(s, o, c, y0, out) };
+        }
+        return;
+    }
+    for (((&s, &o), &c), out) in sums.iter().zip(offset).zip(scale).zip(out) {
+        *out = (((s + o) as f32 * c).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8;
+    }
+}
+
+/// [`requantise_lanes`] on 16 lanes (the operations of `qconv_kernel::requant16`, with a
+/// vector of offsets and one of scales).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn requant16_lanes(sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, out: &mut [u8]) {
+    use std::arch::x86_64::*;
+    assert!(sums.len() == L && offset.len() == L && scale.len() == L && out.len() == L);
+    // SAFETY: 16 values in and out (asserted).
+    unsafe {
+        let v = _mm512_add_epi32(_mm512_loadu_si512(sums.as_ptr().cast()), _mm512_loadu_si512(offset.as_ptr().cast()));
+        let f = _mm512_mul_ps(_mm512_cvtepi32_ps(v), _mm512_loadu_ps(scale.as_ptr()));
+        let f = _mm512_add_ps(
+            _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f),
+            _mm512_set1_ps(y0 as f32),
+        );
+        let f = _mm512_min_ps(_mm512_max_ps(f, _mm512_setzero_ps()), _mm512_set1_ps(255.0));
+        _mm_storeu_si128(out.as_mut_ptr().cast(), _mm512_cvtepi32_epi8(_mm512_cvttps_epi32(f)));
+    }
+}
+
+/// The dot product of four u8 inputs and four i8 weights packed in words.
+fn dot4(x: u32, w: i32) -> i32 {
+    let (x, w) = (x.to_le_bytes(), w.to_le_bytes());
+    (0..4).map(|k| x[k] as i32 * w[k] as i8 as i32).sum()
+}
+
+/// The portable tiles (the reference the VNNI ones are tested against): tiles `first..` (as
+/// many as `sums` holds), `sums[tile][position][channel]`.
+fn tiles(g: &Geometry, oc: usize, px: usize, words: &[u32], weights: &[i32], first: usize, sums: &mut [i32]) {
+    for (k, tile) in sums.chunks_exact_mut(oc * px).enumerate() {
+        let base = (first + k) * px;
+        for (q, s) in tile.chunks_exact_mut(oc).enumerate() {
+            for (&t, w) in g.taps.iter().zip(weights.chunks_exact(oc)) {
+                let x = words[base + q + t];
+                for (s, &w) in s.iter_mut().zip(w) {
+                    *s += dot4(x, w);
+                }
+            }
+        }
+    }
+}
+
+/// [`tiles`] on AVX-512 VNNI: `V·P` accumulators, the tap groups taken `CHUNK` at a time over
+/// every tile, the partial sums kept in `sums`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vnni")]
+unsafe fn tiles_vnni<const V: usize, const P: usize>(
+    g: &Geometry,
+    words: &[u32],
+    weights: &[i32],
+    first: usize,
+    sums: &mut [i32],
+) {
+    use std::arch::x86_64::*;
+    let oc = L * V;
+    for (c, taps) in g.taps.chunks(CHUNK).enumerate() {
+        for (k, tile) in sums.chunks_exact_mut(oc * P).enumerate() {
+            // SAFETY (pointer reads and writes): `run` asserted every group's `P` words from
+            // any tile in `words`; `weights` holds `oc` words per group, 64-byte aligned
+            // (`Line`); `tile` holds `P · oc` values.
+            unsafe {
+                let s = tile.as_mut_ptr();
+                let mut a = [[_mm512_setzero_si512(); V]; P];
+                if c > 0 {
+                    for (q, a) in a.iter_mut().enumerate() {
+                        for (v, a) in a.iter_mut().enumerate() {
+                            *a = _mm512_loadu_si512(s.add(oc * q + L * v).cast());
+                        }
+                    }
+                }
+                let base = words.as_ptr().add((first + k) * P).cast::<i32>();
+                let mut w = weights.as_ptr().add(c * CHUNK * oc);
+                for &t in taps {
+                    let wv: [__m512i; V] = std::array::from_fn(|v| _mm512_load_si512(w.add(L * v).cast()));
+                    let x = base.add(t);
+                    for (q, a) in a.iter_mut().enumerate() {
+                        let b = _mm512_set1_epi32(*x.add(q));
+                        for (a, &w) in a.iter_mut().zip(&wv) {
+                            *a = _mm512_dpbusd_epi32(*a, b, w);
+                        }
+                    }
+                    w = w.add(oc);
+                }
+                for (q, a) in a.iter().enumerate() {
+                    for (v, a) in a.iter().enumerate() {
+                        _mm512_storeu_si512(s.add(oc * q + L * v).cast(), *a);
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The dispatched tiles and requantisation give the portable ones' bytes, for both tile
+    /// shapes, with a partial block and several chunks of tap groups.
+    #[test]
+    fn dispatched_tiles_equal_the_portable_ones() {
+        if !crate::isa().vnni {
+            println!("NOTE: no AVX-512 VNNI here (or PRL_ISA caps it): PackedQConv's channels-in-lanes VNNI tiles are not tested here");
+        }
+        let (cg, h, w, k) = (20, 11, 23, 3);
+        let taps: Vec<usize> =
+            (0..cg).flat_map(|c| (0..k).flat_map(move |i| (0..k).map(move |j| (c * h + i) * w + j))).collect();
+        let g = Geometry { taps: &taps, wp: w, oh: h - k + 1, ow: w - k + 1 };
+        let words: Vec<u32> = (0..cg * h * w + 64).map(|i| (i as u32).wrapping_mul(2_654_435_761)).collect();
+        for co in [40, 96] {
+            let groups = taps.len();
+            let wq: Vec<i32> = (0..co * groups).map(|i| (i as i32).wrapping_mul(-1_640_531_535)).collect();
+            let offset: Vec<i32> = (0..co as i32).map(|o| 1000 * o - 30_000).collect();
+            let scale: Vec<f32> = (0..co).map(|o| 1.0 / (2000.0 + 37.0 * o as f32)).collect();
+            let v = QLanePack::registers_for(co).unwrap();
+            let pack = QLanePack::new(&wq, groups, co, v, &offset, &scale);
+            let mut got = vec![0u8; co * g.oh * g.ow];
+            pack.run(&g, &words, 9, &mut got);
+            let mut want = vec![0u8; co * g.oh * g.ow];
+            let mut spread = std::collections::HashSet::new();
+            for o in 0..co {
+                for y in 0..g.oh {
+                    for x in 0..g.ow {
+                        let p = y * g.wp + x;
+                        let s: i32 =
+                            taps.iter().enumerate().map(|(gi, &t)| dot4(words[p + t], wq[o * groups + gi])).sum();
+                        let q = (((s + offset[o]) as f32 * scale[o]).round_ties_even() + 9.0).clamp(0.0, 255.0) as u8;
+                        want[(o * g.oh + y) * g.ow + x] = q;
+                        spread.insert(q);
+                    }
+                }
+            }
+            assert!(spread.len() > 100, "the test's outputs should spread over the bytes: {}", spread.len());
+            if let Some(i) = (0..want.len()).find(|&i| got[i] != want[i]) {
+                panic!("{co} channels: output {i} is {} instead of {}", got[i], want[i]);
+            }
+        }
+    }
+}
