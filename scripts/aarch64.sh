@@ -102,7 +102,7 @@ check() {
         exit 1
     fi
     # A PRL-Track frame takes seconds under qemu: AARCH64_TRACE_FRAMES bounds the frames checked
-    # (CI checks the first 12 of 40); unset, the whole trace.
+    # (CI checks the first 6 of 40); unset, the whole trace.
     echo "== aarch64: the golden drift trace on the x86 plan (${AARCH64_TRACE_FRAMES:-all} frames, 2 threads)"
     PRL_GOLDEN_DIR=$golden PRL_REFERENCE_PLAN=$work/prl-plan PRL_TEST_THREADS=2 \
         PRL_TRACE_FRAMES=${AARCH64_TRACE_FRAMES:-1000000} \

@@ -94,18 +94,8 @@ impl LanePack {
         assert!(self.lines.len() * L == self.co.div_ceil(oc) * self.taps * oc && l.taps.len() == self.taps);
         assert!(l.taps.iter().all(|&t| t + l.positions() + px <= padded.len()));
         assert!(out.len() == self.co * l.oh * l.ow && bias.len() >= self.co);
-        let blocks = self.co.div_ceil(oc);
-        let n_tiles = l.positions().div_ceil(px);
-        let parts = 12usize.div_ceil(blocks).clamp(1, n_tiles);
-        let per_part = n_tiles.div_ceil(parts);
         let dst = SyncPtr(out.as_mut_ptr());
-        par_for(blocks * parts, |item| {
-            let (b, part) = (item / parts, item % parts);
-            let first = part * per_part;
-            let count = per_part.min(n_tiles.saturating_sub(first));
-            if count == 0 {
-                return;
-            }
+        for_each_item(self.co.div_ceil(oc), l.positions().div_ceil(px), |b, first, count| {
             let weights = &self.values()[b * self.taps * oc..(b + 1) * self.taps * oc];
             let mut sums = vec![0f32; count * oc * px];
             match (self.v, crate::isa::f32_kernel()) {
@@ -141,6 +131,21 @@ impl LanePack {
             }
         });
     }
+}
+
+/// Run `f(block, first tile, tiles)` over `blocks` channel blocks of `tiles` tiles each on
+/// tract's threads: each block whole, or, where there are fewer than 12 blocks, in runs of
+/// tiles, so that every thread has work.
+pub(super) fn for_each_item(blocks: usize, tiles: usize, f: impl Fn(usize, usize, usize) + Sync) {
+    let parts = 12usize.div_ceil(blocks).clamp(1, tiles.max(1));
+    let per_part = tiles.div_ceil(parts);
+    par_for(blocks * parts, |item| {
+        let first = (item % parts) * per_part;
+        let count = per_part.min(tiles.saturating_sub(first));
+        if count > 0 {
+            f(item / parts, first, count);
+        }
+    });
 }
 
 /// The portable form of the tiles (the reference the AVX-512 one is tested against): for tiles

@@ -8,8 +8,8 @@
 //! 15 times in 16). The sums are exact integers either way; the requantisation is the scalar
 //! formula lane by lane (each lane its channel's offset and scale), so the bytes are the same.
 
-use super::conv_lanes::LanePack;
-use super::{par_for, SyncPtr};
+use super::conv_lanes::{for_each_item, LanePack};
+use super::SyncPtr;
 
 /// Output channels per register.
 const L: usize = 16;
@@ -110,18 +110,8 @@ impl QLanePack {
         assert!(self.lines.len() * L == self.co.div_ceil(oc) * self.groups * oc && g.taps.len() == self.groups);
         assert!(g.taps.iter().all(|&t| t + g.positions() + px <= words.len()));
         assert!(out.len() == self.co * g.oh * g.ow);
-        let blocks = self.co.div_ceil(oc);
-        let n_tiles = g.positions().div_ceil(px);
-        let parts = 12usize.div_ceil(blocks).clamp(1, n_tiles);
-        let per_part = n_tiles.div_ceil(parts);
         let dst = SyncPtr(out.as_mut_ptr());
-        par_for(blocks * parts, |item| {
-            let (b, part) = (item / parts, item % parts);
-            let first = part * per_part;
-            let count = per_part.min(n_tiles.saturating_sub(first));
-            if count == 0 {
-                return;
-            }
+        for_each_item(self.co.div_ceil(oc), g.positions().div_ceil(px), |b, first, count| {
             let weights = &self.values()[b * self.groups * oc..(b + 1) * self.groups * oc];
             let mut sums = vec![0i32; count * oc * px];
             match self.v {
