@@ -15,6 +15,7 @@ use super::{par_for, SyncPtr};
 /// Output channels per register.
 const L: usize = 16;
 /// Taps per pass over the tiles: a pass's weights (at most 128 x 48 values, 24 KB) stay in L1.
+#[cfg(target_arch = "x86_64")]
 const CHUNK: usize = 128;
 
 /// One 64-byte line of packed weights (so that every tap's registers load aligned).

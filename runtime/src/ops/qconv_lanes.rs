@@ -14,6 +14,7 @@ use super::SyncPtr;
 /// Output channels per register.
 const L: usize = 16;
 /// Tap groups per pass over the tiles (a pass's weights, at most 128 x 48 words, stay in L1).
+#[cfg(target_arch = "x86_64")]
 const CHUNK: usize = 128;
 
 /// One 64-byte line of weight words (every register loads aligned).
