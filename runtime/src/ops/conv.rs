@@ -120,10 +120,12 @@ impl std::fmt::Debug for PackedConv {
 
 impl PartialEq for PackedConv {
     fn eq(&self, other: &Self) -> bool {
-        let lanes = |c: &PackedConv| c.lanes.as_ref().map(|l| l.values().to_vec()).unwrap_or_default();
+        fn lanes(c: &PackedConv) -> &[f32] {
+            c.lanes.as_ref().map(|l| l.values()).unwrap_or_default()
+        }
         self.shape == other.shape
             && same_bits(&self.weights, &other.weights)
-            && same_bits(&lanes(self), &lanes(other))
+            && same_bits(lanes(self), lanes(other))
             && same_bits(&self.bias, &other.bias)
     }
 }
@@ -150,11 +152,15 @@ impl PackedConv {
             }
             _ => None,
         };
-        // Written in order, block by block: the block's rows are read as 8 streams.
-        let mut packed = Vec::with_capacity(if lanes.is_some() { 0 } else { blocks * live.len() * ROWS });
-        for rows in weight.chunks(ROWS * taps).filter(|_| lanes.is_none()) {
-            for &t in &live {
-                packed.extend((0..ROWS).map(|r| rows.get(r * taps + t).copied().unwrap_or(0.0)));
+        // Written in order, block by block: the block's rows are read as 8 streams (not at all
+        // where the lanes' packing serves).
+        let mut packed = Vec::new();
+        if lanes.is_none() {
+            packed.reserve(blocks * live.len() * ROWS);
+            for rows in weight.chunks(ROWS * taps) {
+                for &t in &live {
+                    packed.extend((0..ROWS).map(|r| rows.get(r * taps + t).copied().unwrap_or(0.0)));
+                }
             }
         }
         let bias: Vec<f32> =

@@ -31,6 +31,14 @@ impl Layout {
     pub fn positions(&self) -> usize {
         (self.oh - 1) * self.wp + self.ow
     }
+
+    /// A `k` x `k` convolution over `planes` unpadded `h` x `w` planes, every tap live (the
+    /// kernels' tests).
+    #[cfg(test)]
+    pub fn dense(planes: usize, h: usize, w: usize, k: usize) -> Layout {
+        let taps = (0..planes).flat_map(|c| (0..k).flat_map(move |i| (0..k).map(move |j| (c * h + i) * w + j)));
+        Layout { taps: taps.collect(), wp: w, oh: h - k + 1, ow: w - k + 1 }
+    }
 }
 
 /// One block of `ROWS` output channels (fewer in `out` for the last block: `out` holds
@@ -225,12 +233,7 @@ mod tests {
     #[test]
     fn portable_tiles_equal_the_dispatched_kernel() {
         let (ci, h, w, k) = (20, 9, 37, 3);
-        let l = Layout {
-            taps: (0..ci).flat_map(|c| (0..k).flat_map(move |i| (0..k).map(move |j| (c * h + i) * w + j))).collect(),
-            wp: w,
-            oh: h - k + 1,
-            ow: w - k + 1,
-        };
+        let l = Layout::dense(ci, h, w, k);
         let padded: Vec<f32> = (0..ci * h * w + MAX_PX).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
         let weights: Vec<f32> = (0..l.taps.len() * ROWS).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
         let bias = [0.5; ROWS];

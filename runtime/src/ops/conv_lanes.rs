@@ -115,19 +115,12 @@ impl LanePack {
             }
             let rows = oc.min(self.co - b * oc);
             let plane = l.oh * l.ow;
-            for (k, tile) in sums.chunks_exact(oc * px).enumerate() {
-                for (q, s) in tile.chunks_exact(oc).enumerate() {
-                    let p = (first + k) * px + q;
-                    let (y, x) = (p / l.wp, p % l.wp);
-                    if p >= l.positions() || x >= l.ow {
-                        continue;
-                    }
-                    for (r, s) in s[..rows].iter().enumerate() {
-                        let o = b * oc + r;
-                        // SAFETY: `o < co` and `y·ow + x < plane`, within `out` (asserted);
-                        // each (channel, position) belongs to one item only.
-                        unsafe { *dst.at(o * plane + y * l.ow + x) = s + bias[o] };
-                    }
+            for (s, at) in outputs(l, &sums, oc, px, first) {
+                for (r, s) in s[..rows].iter().enumerate() {
+                    let o = b * oc + r;
+                    // SAFETY: `o < co` and `at < plane`, within `out` (asserted); each
+                    // (channel, position) belongs to one item only.
+                    unsafe { *dst.at(o * plane + at) = s + bias[o] };
                 }
             }
         });
@@ -147,6 +140,23 @@ pub(super) fn for_each_item(blocks: usize, tiles: usize, f: impl Fn(usize, usize
             f(item / parts, first, count);
         }
     });
+}
+
+/// The outputs held in `sums` (`[tile][position][oc]`, tiles of `px` positions from tile
+/// `first`): each real output position's `oc` sums and its index in an output plane (the
+/// wide columns and the positions past the end left out).
+pub(super) fn outputs<'a, T>(
+    l: &'a Layout,
+    sums: &'a [T],
+    oc: usize,
+    px: usize,
+    first: usize,
+) -> impl Iterator<Item = (&'a [T], usize)> + 'a {
+    sums.chunks_exact(oc).enumerate().filter_map(move |(i, s)| {
+        let p = first * px + i;
+        let (y, x) = (p / l.wp, p % l.wp);
+        (p < l.positions() && x < l.ow).then_some((s, y * l.ow + x))
+    })
 }
 
 /// The portable form of the tiles (the reference the AVX-512 one is tested against): for tiles
@@ -230,12 +240,7 @@ mod tests {
             println!("NOTE: no AVX-512 here (or PRL_ISA caps it): PackedConv's channels-in-lanes AVX-512 tiles are not tested here");
         }
         let (ci, h, w, k) = (30, 11, 23, 3);
-        let l = Layout {
-            taps: (0..ci).flat_map(|c| (0..k).flat_map(move |i| (0..k).map(move |j| (c * h + i) * w + j))).collect(),
-            wp: w,
-            oh: h - k + 1,
-            ow: w - k + 1,
-        };
+        let l = Layout::dense(ci, h, w, k);
         let padded: Vec<f32> = (0..ci * h * w + 64).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
         for co in [40, 96] {
             let taps = l.taps.len();

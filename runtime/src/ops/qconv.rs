@@ -19,11 +19,12 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
+use super::conv_kernel::Layout;
 use super::qconv_amx::AmxWeights;
 #[cfg(target_arch = "aarch64")]
 use super::qconv_kernel::tiles_sdot;
 use super::qconv_kernel::{bytemuck_words, requantise, tiles_vnni};
-use super::qconv_lanes::{Geometry, QLanePack};
+use super::qconv_lanes::QLanePack;
 use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits, ConvShape};
 
 /// Output channels per tile.
@@ -39,8 +40,9 @@ pub struct PackedQConv {
     shape: ConvShape,
     /// `[o / 8][group (c/4, i, j)][o % 8]` words of four i8 weights (channels `4·(c/4)..+4`).
     weights: Arc<Vec<i32>>,
-    /// Word offset of every tap group `(c/4, i, j)` in the padded input, in packing order.
-    taps: Arc<Vec<usize>>,
+    /// Word offset of every tap group `(c/4, i, j)` in the padded input, in packing order, and
+    /// the output's wide positions.
+    layout: Arc<Layout>,
     /// Per output channel: `bias − x0·Σw`, and the requantisation scale.
     offset: Arc<Vec<i32>>,
     /// Per output channel: `Σw` (the SDOT path's sums lack `128·Σw`).
@@ -144,7 +146,7 @@ impl PackedQConv {
         let (hp, wp) = s.padded();
         let (oh, ow) = s.out();
         let plane = oh * ow;
-        let positions = (oh - 1) * wp + ow;
+        let positions = self.layout.positions();
         // Words of four channels; room past the end for the last tile.
         let mut words = vec![u32::from_ne_bytes([self.x0; 4]); s.ci.div_ceil(4) * hp * wp + PX + wp];
         // Each group of four channels fills its own words, the groups side by side on the threads.
@@ -163,9 +165,9 @@ impl PackedQConv {
             // i8 inputs for the signed dot product: x − 128, the top bit of every byte flipped.
             words.iter_mut().for_each(|w| *w ^= 0x8080_8080);
         }
-        let (words, taps) = (&words, &self.taps);
+        let (words, taps) = (&words, &self.layout.taps);
         if let (WordsPath::Vnni, Some(lanes)) = (path, &self.lanes) {
-            lanes.run(&Geometry { taps, wp, oh, ow }, words, self.y0, dst);
+            lanes.run(&self.layout, words, self.y0, dst);
             return;
         }
         par_chunks(dst, ROWS * plane, |b, out| {
@@ -361,7 +363,12 @@ impl PackedQConv {
         };
         let weights = words.iter().map(word).collect();
         Ok(PackedQConv {
-            taps: Arc::new(shape.tap_offsets(ci.div_ceil(4))),
+            layout: Arc::new(Layout {
+                taps: shape.tap_offsets(ci.div_ceil(4)),
+                wp: shape.padded().1,
+                oh: shape.out().0,
+                ow: shape.out().1,
+            }),
             shape,
             weights: Arc::new(weights),
             offset: Arc::new(offset),

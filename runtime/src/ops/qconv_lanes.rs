@@ -8,7 +8,8 @@
 //! 15 times in 16). The sums are exact integers either way; the requantisation is the scalar
 //! formula lane by lane (each lane its channel's offset and scale), so the bytes are the same.
 
-use super::conv_lanes::{for_each_item, LanePack};
+use super::conv_kernel::Layout;
+use super::conv_lanes::{for_each_item, outputs, LanePack};
 use super::SyncPtr;
 
 /// Output channels per register.
@@ -32,22 +33,6 @@ pub(crate) struct QLanePack {
     /// Per channel, padded to whole blocks: `bias − x0·Σw` and the scale.
     offset: Vec<i32>,
     scale: Vec<f32>,
-}
-
-/// Where a convolution's words lie: the word offset of each tap group, the row stride of the
-/// padded input and the output's size.
-pub(crate) struct Geometry<'a> {
-    pub taps: &'a [usize],
-    pub wp: usize,
-    pub oh: usize,
-    pub ow: usize,
-}
-
-impl Geometry<'_> {
-    /// Wide positions covering every output.
-    fn positions(&self) -> usize {
-        (self.oh - 1) * self.wp + self.ow
-    }
 }
 
 impl QLanePack {
@@ -106,7 +91,7 @@ impl QLanePack {
     /// four channels a word, extending `P` words past the last tap of the last position), split
     /// over tract's threads by channel block and, where there are few blocks, by runs of
     /// positions.
-    pub(crate) fn run(&self, g: &Geometry, words: &[u32], y0: u8, out: &mut [u8]) {
+    pub(crate) fn run(&self, g: &Layout, words: &[u32], y0: u8, out: &mut [u8]) {
         let (oc, px) = (self.channels(), self.positions());
         assert!(self.lines.len() * L == self.co.div_ceil(oc) * self.groups * oc && g.taps.len() == self.groups);
         assert!(g.taps.iter().all(|&t| t + g.positions() + px <= words.len()));
@@ -130,20 +115,14 @@ impl QLanePack {
             let plane = g.oh * g.ow;
             let offset = &self.offset[b * oc..(b + 1) * oc];
             let scale = &self.scale[b * oc..(b + 1) * oc];
+            let vector = cfg!(target_arch = "x86_64") && crate::isa().avx512;
             let mut bytes = vec![0u8; oc];
-            for (k, tile) in sums.chunks_exact(oc * px).enumerate() {
-                for (q, s) in tile.chunks_exact(oc).enumerate() {
-                    let p = (first + k) * px + q;
-                    let (y, x) = (p / g.wp, p % g.wp);
-                    if p >= g.positions() || x >= g.ow {
-                        continue;
-                    }
-                    requantise_lanes(s, offset, scale, y0, &mut bytes);
-                    for (r, &v) in bytes[..rows].iter().enumerate() {
-                        // SAFETY: `b·oc + r < co` and `y·ow + x < plane`, within `out`
-                        // (asserted); each (channel, position) belongs to one item only.
-                        unsafe { *dst.at((b * oc + r) * plane + y * g.ow + x) = v };
-                    }
+            for (s, at) in outputs(g, &sums, oc, px, first) {
+                requantise_lanes(vector, s, offset, scale, y0, &mut bytes);
+                for (r, &v) in bytes[..rows].iter().enumerate() {
+                    // SAFETY: `b·oc + r < co` and `at < plane`, within `out` (asserted); each
+                    // (channel, position) belongs to one item only.
+                    unsafe { *dst.at((b * oc + r) * plane + at) = v };
                 }
             }
         });
@@ -151,10 +130,12 @@ impl QLanePack {
 }
 
 /// `out[r] = sat_u8(round_half_even((sums[r] + offset[r]) · scale[r]) + y0)`, lane by lane:
-/// the scalar formula of [`super::qconv_kernel::requantise`] with one channel per lane.
-fn requantise_lanes(sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, out: &mut [u8]) {
+/// the scalar formula of [`super::qconv_kernel::requantise`] with one channel per lane;
+/// `vector`: on AVX-512 (the CPU must have it; x86_64 only).
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables))]
+fn requantise_lanes(vector: bool, sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, out: &mut [u8]) {
     #[cfg(target_arch = "x86_64")]
-    if crate::isa().avx512 {
+    if vector {
         for (((s, o), c), out) in
             sums.chunks_exact(L).zip(offset.chunks_exact(L)).zip(scale.chunks_exact(L)).zip(out.chunks_exact_mut(L))
         {
@@ -196,7 +177,7 @@ fn dot4(x: u32, w: i32) -> i32 {
 
 /// The portable tiles (the reference the VNNI ones are tested against): tiles `first..` (as
 /// many as `sums` holds), `sums[tile][position][channel]`.
-fn tiles(g: &Geometry, oc: usize, px: usize, words: &[u32], weights: &[i32], first: usize, sums: &mut [i32]) {
+fn tiles(g: &Layout, oc: usize, px: usize, words: &[u32], weights: &[i32], first: usize, sums: &mut [i32]) {
     for (k, tile) in sums.chunks_exact_mut(oc * px).enumerate() {
         let base = (first + k) * px;
         for (q, s) in tile.chunks_exact_mut(oc).enumerate() {
@@ -215,7 +196,7 @@ fn tiles(g: &Geometry, oc: usize, px: usize, words: &[u32], weights: &[i32], fir
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vnni")]
 unsafe fn tiles_vnni<const V: usize, const P: usize>(
-    g: &Geometry,
+    g: &Layout,
     words: &[u32],
     weights: &[i32],
     first: usize,
@@ -273,9 +254,8 @@ mod tests {
             println!("NOTE: no AVX-512 VNNI here (or PRL_ISA caps it): PackedQConv's channels-in-lanes VNNI tiles are not tested here");
         }
         let (cg, h, w, k) = (20, 11, 23, 3);
-        let taps: Vec<usize> =
-            (0..cg).flat_map(|c| (0..k).flat_map(move |i| (0..k).map(move |j| (c * h + i) * w + j))).collect();
-        let g = Geometry { taps: &taps, wp: w, oh: h - k + 1, ow: w - k + 1 };
+        let g = Layout::dense(cg, h, w, k);
+        let taps = &g.taps;
         let words: Vec<u32> = (0..cg * h * w + 64).map(|i| (i as u32).wrapping_mul(2_654_435_761)).collect();
         for co in [40, 96] {
             let groups = taps.len();
