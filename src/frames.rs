@@ -57,6 +57,24 @@ pub fn decode_frame(path: &Path) -> Result<(Frame, Option<String>), InputError> 
     decode_frame_bytes(path, &bytes)
 }
 
+/// The width and height a frame's header declares (`bytes` as [`decode_frame_bytes`] takes
+/// them), read without decoding its pixels; a size over [`MAX_FRAME_PIXELS`] is an error.
+pub fn frame_size(path: &Path, bytes: &[u8]) -> Result<(usize, usize), InputError> {
+    let bad = |msg: String| InputError::new(path, msg);
+    if bytes.starts_with(&[0xff, 0xd8]) {
+        let (w, h, _, _) = run_jpeg(bytes, false).map_err(|m| bad(format!("bad JPEG: {m}")))?;
+        return Ok((w, h));
+    }
+    let reader = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| bad(format!("cannot read frame: {e}")))?;
+    let (w, h) = reader.into_dimensions().map_err(|e| bad(format!("cannot read the image's size: {e}")))?;
+    if w == 0 || h == 0 || w as u64 * h as u64 > MAX_FRAME_PIXELS {
+        return Err(bad(format!("declares {w}x{h} pixels (at most {MAX_FRAME_PIXELS} are read)")));
+    }
+    Ok((w as usize, h as usize))
+}
+
 /// [`decode_frame`] on bytes already read; `path` names them in errors.
 pub fn decode_frame_bytes(path: &Path, bytes: &[u8]) -> Result<(Frame, Option<String>), InputError> {
     let bad = |msg: String| InputError::new(path, msg);
@@ -121,6 +139,13 @@ extern "C-unwind" fn fail(cinfo: &mut jpeg_common_struct) {
 
 /// Decode a JPEG to BGR as OpenCV does: width, height, pixels and libjpeg's warning, if any.
 fn decode_jpeg(bytes: &[u8]) -> Result<(usize, usize, Vec<u8>, Option<String>), String> {
+    let (w, h, px, warning) = run_jpeg(bytes, true)?;
+    Ok((w, h, px.unwrap_or_default(), warning))
+}
+
+/// libjpeg on `bytes` under this module's error manager: the header (size checked against
+/// [`MAX_FRAME_PIXELS`]) and, where `pixels`, the BGR pixels; libjpeg's warning, if any.
+fn run_jpeg(bytes: &[u8], pixels: bool) -> Result<(usize, usize, Option<Vec<u8>>, Option<String>), String> {
     JPEG_WARNING.with(|w| w.borrow_mut().take());
     // SAFETY: an all-zero `jpeg_error_mgr` is a valid value of the plain C struct (null function
     // pointers, zero counters), and `jpeg_std_error` then fills in libjpeg's defaults.
@@ -129,16 +154,20 @@ fn decode_jpeg(bytes: &[u8]) -> Result<(usize, usize, Vec<u8>, Option<String>), 
     unsafe { mozjpeg_sys::jpeg_std_error(&mut err) };
     err.error_exit = Some(fail);
     err.emit_message = Some(note_warning);
-    let decoded = std::panic::catch_unwind(move || -> Result<(usize, usize, Vec<u8>), String> {
+    type Decoded = (usize, usize, Option<Vec<u8>>);
+    let decoded = std::panic::catch_unwind(move || -> Result<Decoded, String> {
         let d = mozjpeg::Decompress::builder().with_err(err).from_mem(bytes).map_err(|e| e.to_string())?;
         let (w, h) = (d.width(), d.height());
         if w == 0 || h == 0 || (w as u64) * (h as u64) > MAX_FRAME_PIXELS {
             return Err(format!("declares {w}x{h} pixels (at most {MAX_FRAME_PIXELS} are read)"));
         }
+        if !pixels {
+            return Ok((w, h, None));
+        }
         let mut d = d.to_colorspace(mozjpeg::ColorSpace::JCS_EXT_BGR).map_err(|e| e.to_string())?;
         let px = d.read_scanlines::<u8>().map_err(|e| e.to_string())?;
         d.finish().map_err(|e| e.to_string())?;
-        Ok((w, h, px))
+        Ok((w, h, Some(px)))
     })
     .unwrap_or_else(|p| Err(p.downcast_ref::<String>().cloned().unwrap_or_else(|| "decoder failure".into())));
     let warning = JPEG_WARNING.with(|w| w.borrow_mut().take());

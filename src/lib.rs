@@ -18,7 +18,8 @@ pub mod video;
 pub use calibration::{calibration_crops, CalibrationSpec, POSITION_JITTER, SCALE_JITTER};
 pub use dataset::{detect, parse_pysot_json, Dataset, Format, Video, UAV123_ATTRIBUTES};
 pub use frames::{
-    decode_frame, decode_frame_bytes, load_frame, read_frame, Damaged, MAX_FRAME_FILE_BYTES, MAX_FRAME_PIXELS,
+    decode_frame, decode_frame_bytes, frame_size, load_frame, read_frame, Damaged, MAX_FRAME_FILE_BYTES,
+    MAX_FRAME_PIXELS,
 };
 pub use metrics::iou;
 pub use sequence::{

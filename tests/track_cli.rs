@@ -226,6 +226,16 @@ fn damaged_jpeg_frames_warn_or_fail_with_strict() {
     assert!(frame.bgr().iter().any(|&b| b != 128), "a grey frame");
     let whole = dir.path().join("000001.jpg");
     assert_eq!(prl_track::decode_frame(&whole).unwrap().1, None);
+    // The header alone gives the size, of a cut frame too; a declared size over the limit is
+    // refused from the header (the SOF0 marker's height and width set to 9000).
+    let img = drift_frame(1);
+    let size = (img.width() as usize, img.height() as usize);
+    assert_eq!(prl_track::frame_size(&cut, &bytes[..bytes.len() / 3]).unwrap(), size);
+    let mut huge = std::fs::read(&whole).unwrap();
+    let sof = huge.windows(2).position(|m| m == [0xff, 0xc0]).expect("a baseline JPEG");
+    huge[sof + 5..sof + 9].copy_from_slice(&[0x23, 0x28, 0x23, 0x28]);
+    let err = prl_track::frame_size(&whole, &huge).unwrap_err().to_string();
+    assert!(err.contains("000001.jpg") && err.contains("declares 9000x9000 pixels"), "{err}");
 
     let args = |strict: bool| {
         let mut a = vec!["track", "--plan", plan.to_str().unwrap(), "--frames", dir.path().to_str().unwrap()];
@@ -305,6 +315,8 @@ fn png_bmp_and_webp_frames_decode_alike() {
         img.save(&p).unwrap();
         let (frame, damage) = prl_track::decode_frame(&p).unwrap();
         assert!(damage.is_none());
+        let size = prl_track::frame_size(&p, &std::fs::read(&p).unwrap()).unwrap();
+        assert_eq!(size, (frame.width(), frame.height()), "{ext}");
         frames.push(frame);
     }
     assert!(frames.iter().all(|f| *f == frames[0]), "the same pixels from every format");
