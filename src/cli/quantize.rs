@@ -50,8 +50,9 @@ pub struct QuantizeArgs {
     /// Layers with fewer multiply-adds per frame stay f32.
     #[arg(long, value_name = "MACS", default_value_t = QuantizeOptions::default().min_macs)]
     min_macs: u64,
-    /// Convolutions with fewer output channels stay f32 (tract's int8 convolution pays an
-    /// im2col and zero-point sums per input element, which few output channels do not amortise).
+    /// Convolutions with fewer output channels stay f32 (the runtime's int8 convolution on
+    /// VNNI or the aarch64 dot product pays for 64; tract's, used on other CPUs, pays an im2col
+    /// and zero-point sums per input element, which few output channels do not amortise).
     #[arg(long, value_name = "N", default_value_t = QuantizeOptions::default().min_out_channels)]
     min_out_channels: usize,
     /// Also quantise products of two activations (HMG's attention); measured no faster than

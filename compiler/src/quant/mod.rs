@@ -81,9 +81,11 @@ pub struct QuantizeOptions {
     /// Layers with fewer multiply-adds stay f32: the quantise/dequantise around them would cost
     /// more than the integer kernel saves.
     pub min_macs: u64,
-    /// Convolutions with fewer output channels stay f32: tract's int8 convolution pays an
-    /// eager im2col and zero-point column sums per input element, which only enough output
-    /// channels amortise (layer 1, 96 channels, measured about 2x slower in int8 than in f32).
+    /// Convolutions with fewer output channels stay f32. Where the runtime's `PackedQConv`
+    /// runs them (AVX-512 VNNI, aarch64's dot product; stride 1 or 2) 64 is enough: PRL-Track's
+    /// layer 1 (96 channels, three input channels) is about 2x faster in int8 there. tract's own int8
+    /// convolution, used elsewhere, pays an eager im2col and zero-point sums per input element,
+    /// which only more channels amortise (layer 1 about 2x slower in int8 than in f32 on it).
     pub min_out_channels: usize,
     /// Also quantise products of two activations (HMG's attention).
     pub act_matmul: bool,
@@ -99,7 +101,7 @@ impl Default for QuantizeOptions {
             keep_fp32: vec![],
             budget: None,
             min_macs: 4_000_000,
-            min_out_channels: 128,
+            min_out_channels: 64,
             act_matmul: false,
             sensitivity_crops: 8,
         }

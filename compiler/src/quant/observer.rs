@@ -1,6 +1,8 @@
 //! Activation ranges from calibration data: running min/max plus magnitude histograms, and the
 //! three ways of turning them into a quantisation range (min/max, a percentile, or the
-//! entropy/KL criterion of TensorRT's calibrator).
+//! entropy/KL criterion of TensorRT's calibrator). A tensor whose every value was a whole
+//! number in `[0, 255]` (the image crops the networks read) gets that range whatever the method:
+//! scale 1 and zero point 0 quantise it without loss.
 
 /// How an activation's range is chosen from what calibration saw.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -49,6 +51,8 @@ pub struct Observer {
     pos: Vec<u64>,
     /// Magnitudes of the negative values.
     neg: Vec<u64>,
+    /// Every value seen so far was a whole number in `[0, 255]`.
+    bytes: bool,
 }
 
 impl Default for Observer {
@@ -60,6 +64,7 @@ impl Default for Observer {
             width: 0.0,
             pos: vec![0; BINS],
             neg: vec![0; BINS],
+            bytes: true,
         }
     }
 }
@@ -73,6 +78,7 @@ impl Observer {
             hi = hi.max(v);
         }
         (self.min, self.max) = (lo, hi);
+        self.bytes = self.bytes && data.iter().all(|&v| v.is_nan() || (v.fract() == 0.0 && (0.0..=255.0).contains(&v)));
         let top = hi.abs().max(lo.abs());
         if !top.is_finite() || top == 0.0 {
             self.count += data.len() as u64;
@@ -114,9 +120,13 @@ impl Observer {
         (self.min <= self.max).then_some((self.min, self.max))
     }
 
-    /// The range `method` chooses, widened to hold 0 (so that zero is exact, as padding needs).
+    /// The range `method` chooses, widened to hold 0 (so that zero is exact, as padding needs);
+    /// `[0, 255]` for a tensor of whole numbers in that range (u8 holds it exactly).
     pub fn range(&self, method: Method) -> Option<(f32, f32)> {
         let (lo, hi) = self.min_max()?;
+        if self.bytes {
+            return Some((0.0, 255.0));
+        }
         let (lo, hi) = match method {
             Method::MinMax => (lo, hi),
             Method::Percentile => {
@@ -214,10 +224,29 @@ mod tests {
     #[test]
     fn minmax_is_exact_and_holds_zero() {
         let mut o = Observer::default();
-        o.observe(&[1.0, 3.0, 2.0]);
+        o.observe(&[1.5, 3.0, 2.0]);
         assert_eq!(o.range(Method::MinMax), Some((0.0, 3.0)));
         o.observe(&[-2.0, 40.0]);
         assert_eq!(o.range(Method::MinMax), Some((-2.0, 40.0)));
+    }
+
+    #[test]
+    fn whole_numbers_in_a_byte_keep_every_level() {
+        // Pixels: every method gives [0, 255] (scale 1), even where a percentile would clip.
+        let mut data: Vec<f32> = (0..100_000).map(|i| (i % 200) as f32).collect();
+        data.extend([251.0, 0.0]);
+        let mut o = Observer::default();
+        o.observe(&data);
+        for m in Method::ALL {
+            assert_eq!(o.range(m), Some((0.0, 255.0)), "{m:?}");
+        }
+        // One fraction, or one value outside a byte, and it is an ordinary tensor again.
+        for odd in [7.5, 256.0, -1.0] {
+            let mut o = Observer::default();
+            o.observe(&data);
+            o.observe(&[odd]);
+            assert_ne!(o.range(Method::MinMax), Some((0.0, 255.0)), "{odd}");
+        }
     }
 
     #[test]

@@ -1,4 +1,4 @@
-//! Stride-1 u8 x i8 convolutions (tract's quantised `Conv`, from `QLinearConv`) as
+//! Stride-1 and stride-2 u8 x i8 convolutions (tract's quantised `Conv`, from `QLinearConv`) as
 //! [`PackedQConv`]: the direct convolution of [`super::conv`] on AVX-512 VNNI, where
 //! `vpdpbusd` multiplies four u8 inputs by four i8 weights and adds them to an i32 lane.
 //!
@@ -6,10 +6,12 @@
 //! int8 plan, backbone layer 2's product took 7 ms and its im2col 25 ms. Here the input is
 //! copied once into `[C/4, Hp, Wp, 4]` bytes (four channels side by side, padded with the input
 //! zero point), so the four channels of a tap are one 32-bit word and a tile of 16 positions is
-//! one 64-byte load. Put in only on CPUs with AVX-512 VNNI or, on aarch64, the dot product
+//! one 64-byte load; with stride 2 each group's plane is stored as its four phases, as the float
+//! convolution stores it, so that a tap again reads consecutive words (backbone layer 1: 11x11,
+//! stride 2, three channels in one word with a zero weight). Put in only on CPUs with AVX-512 VNNI or, on aarch64, the dot product
 //! (`sdot` on i8: the inputs go in shifted by 128, and 128·Σw is added back before the
 //! requantisation); elsewhere tract's path stays. Where
-//! the CPU also has AMX-INT8, the product runs on AMX tiles instead ([`super::qconv_amx`],
+//! the CPU also has AMX-INT8, stride-1 products run on AMX tiles instead ([`super::qconv_amx`],
 //! 4x faster than VNNI on backbone layer 2); both requantise with the same vector code
 //! ([`super::qconv_kernel`]).
 
@@ -33,7 +35,7 @@ pub(super) const ROWS: usize = 8;
 pub(super) const PX: usize = 32;
 
 /// `y[o] = sat_u8(round_half_even((Σ (x − x0)·w[o] + bias[o]) · scale[o]) + y0)` over the taps
-/// of a stride-1 convolution, `x` u8 (zero point `x0`), `w` i8 with zero point 0, `scale[o] =
+/// of a stride-1 or stride-2 convolution, `x` u8 (zero point `x0`), `w` i8 with zero point 0, `scale[o] =
 /// x_scale · w_scale[o] / y_scale`.
 #[derive(Clone)]
 pub struct PackedQConv {
@@ -143,20 +145,32 @@ impl PackedQConv {
         dst: &mut [u8],
     ) {
         let s = &self.shape;
-        let (hp, wp) = s.padded();
+        let (hq, wq) = s.phase();
         let (oh, ow) = s.out();
         let plane = oh * ow;
         let positions = self.layout.positions();
-        // Words of four channels; room past the end for the last tile.
-        let mut words = vec![u32::from_ne_bytes([self.x0; 4]); s.ci.div_ceil(4) * hp * wp + PX + wp];
+        // Words of four channels, each group's plane stored as its `stride²` phases
+        // ([`ConvShape::phase`]); room past the end for the last tile.
+        let group_words = s.stride * s.stride * hq * wq;
+        let mut words = vec![u32::from_ne_bytes([self.x0; 4]); s.ci.div_ceil(4) * group_words + PX + wq];
         // Each group of four channels fills its own words, the groups side by side on the threads.
-        par_chunks(bytemuck_words(&mut words), hp * wp * 4, |g, bytes| {
+        par_chunks(bytemuck_words(&mut words), group_words * 4, |g, bytes| {
             for c in 4 * g..(4 * g + 4).min(s.ci) {
                 for y in 0..s.h {
                     let row = &src[(c * s.h + y) * s.w..(c * s.h + y + 1) * s.w];
-                    let at = (y + s.pad[0]) * wp + s.pad[1];
+                    let yp = y + s.pad[0];
+                    if s.stride == 1 {
+                        let at = yp * wq + s.pad[1];
+                        for (x, &v) in row.iter().enumerate() {
+                            bytes[(at + x) * 4 + c % 4] = v;
+                        }
+                        continue;
+                    }
+                    // Stride 2: even and odd padded columns go to the row's two phases.
                     for (x, &v) in row.iter().enumerate() {
-                        bytes[(at + x) * 4 + c % 4] = v;
+                        let xp = x + s.pad[1];
+                        let at = ((((yp & 1) * 2 + (xp & 1)) * hq) + yp / 2) * wq + xp / 2;
+                        bytes[at * 4 + c % 4] = v;
                     }
                 }
             }
@@ -187,7 +201,7 @@ impl PackedQConv {
             for (r, out) in out.chunks_exact_mut(plane).enumerate() {
                 for (y, out) in out.chunks_exact_mut(ow).enumerate() {
                     for (x, v) in row.iter_mut().enumerate() {
-                        let p = y * wp + x;
+                        let p = y * wq + x;
                         *v = sums[(p / PX) * PX * ROWS + r * PX + p % PX];
                     }
                     requant(b * ROWS + r, &row, out);
@@ -252,7 +266,7 @@ fn konst_values<T: Datum + Copy>(fact: &TypedFact, n: usize) -> TractResult<Opti
     })
 }
 
-/// The [`PackedQConv`] for `node` if it is a stride-1 quantised convolution with u8 input and
+/// The [`PackedQConv`] for `node` if it is a stride-1 or stride-2 quantised convolution with u8 input and
 /// output, constant i8 weights of zero point 0, constant quantisation parameters, and the CPU
 /// has AVX-512 VNNI or the aarch64 dot product.
 pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedQConv>> {
@@ -273,11 +287,15 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
         && ps.data_format == DataFormat::NCHW
         && ps.kernel_shape.len() == 2
         && conv.group == 1
-        && all_ones(&ps.strides)
         && all_ones(&ps.dilations);
     if !plain {
         return Ok(None);
     }
+    let stride = match ps.strides.as_deref() {
+        None | Some([1, 1]) => 1,
+        Some([2, 2]) => 2,
+        _ => return Ok(None),
+    };
     let Some(&[_, ci, h, w]) = facts[0].shape.as_concrete() else { return Ok(None) };
     let co = ps.output_channels;
     let (Some(kernel), Some(bias)) = (&facts[1].konst, konst_values::<i32>(facts[2], co)?) else { return Ok(None) };
@@ -294,7 +312,7 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     if k0.iter().any(|&z| z != 0) {
         return Ok(None);
     }
-    let shape = ConvShape { ci, h, w, co, kh: ps.kernel_shape[0], kw: ps.kernel_shape[1], pad, stride: 1 };
+    let shape = ConvShape { ci, h, w, co, kh: ps.kernel_shape[0], kw: ps.kernel_shape[1], pad, stride };
     let kernel = kernel.try_as_plain_ram()?;
     // SAFETY: the kernel's datum type is i8, possibly with quantisation parameters (checked).
     let kernel = unsafe { kernel.as_slice_unchecked::<i8>() };
@@ -353,7 +371,8 @@ impl PackedQConv {
             scale[o] = q.x_scale * q.k_scale[o] / q.y_scale;
         }
         let word = |b: &[i8; 4]| i32::from_ne_bytes(b.map(|v| v as u8));
-        let amx = crate::isa().amx.then(|| Arc::new(AmxWeights::new(&shape, kernel)));
+        // AMX's tiles read the padded input row by row: stride 1 only.
+        let amx = (crate::isa().amx && shape.stride == 1).then(|| Arc::new(AmxWeights::new(&shape, kernel)));
         let lanes = match QLanePack::registers_for(co) {
             Some(v) if amx.is_none() && words_path() == Some(WordsPath::Vnni) => {
                 let by_channel: Vec<i32> = by_channel.iter().map(word).collect();
@@ -365,7 +384,7 @@ impl PackedQConv {
         Ok(PackedQConv {
             layout: Arc::new(Layout {
                 taps: shape.tap_offsets(ci.div_ceil(4)),
-                wp: shape.padded().1,
+                wp: shape.phase().1,
                 oh: shape.out().0,
                 ow: shape.out().1,
             }),
@@ -399,8 +418,10 @@ mod tests {
                         for c in 0..s.ci {
                             for i in 0..s.kh {
                                 for j in 0..s.kw {
-                                    let (yy, xx) =
-                                        ((y + i) as isize - s.pad[0] as isize, (x + j) as isize - s.pad[1] as isize);
+                                    let (yy, xx) = (
+                                        (s.stride * y + i) as isize - s.pad[0] as isize,
+                                        (s.stride * x + j) as isize - s.pad[1] as isize,
+                                    );
                                     if yy < 0 || xx < 0 || yy >= s.h as isize || xx >= s.w as isize {
                                         continue;
                                     }
@@ -465,5 +486,15 @@ mod tests {
         check(ConvShape { ci: 128, h: 6, w: 6, co: 32, kh: 1, kw: 1, pad: [0, 2, 1, 0], stride: 1 });
         // 96 outputs: two blocks of 48 channels in lanes (on VNNI), 600 tap groups in 5 passes.
         check(ConvShape { ci: 96, h: 9, w: 12, co: 96, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 });
+    }
+
+    #[test]
+    fn stride_two_equals_the_integer_formula() {
+        // Backbone layer 1's form: three channels (one word, a zero fourth weight), an 11x11
+        // kernel, 96 outputs (channels in lanes on VNNI), odd and even padded sizes.
+        check(ConvShape { ci: 3, h: 31, w: 29, co: 96, kh: 11, kw: 11, pad: [0; 4], stride: 2 });
+        // Padding on odd and even sides, a partial 8-channel block, two groups of four.
+        check(ConvShape { ci: 7, h: 12, w: 15, co: 11, kh: 3, kw: 4, pad: [1, 2, 0, 1], stride: 2 });
+        check(ConvShape { ci: 16, h: 10, w: 10, co: 40, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 });
     }
 }
