@@ -143,9 +143,12 @@ fn decode_jpeg(bytes: &[u8]) -> Result<(usize, usize, Vec<u8>, Option<String>), 
     Ok((w, h, px.unwrap_or_default(), warning))
 }
 
+/// Width, height, the BGR pixels if asked for, and libjpeg's warning, if any.
+type Jpeg = (usize, usize, Option<Vec<u8>>, Option<String>);
+
 /// libjpeg on `bytes` under this module's error manager: the header (size checked against
-/// [`MAX_FRAME_PIXELS`]) and, where `pixels`, the BGR pixels; libjpeg's warning, if any.
-fn run_jpeg(bytes: &[u8], pixels: bool) -> Result<(usize, usize, Option<Vec<u8>>, Option<String>), String> {
+/// [`MAX_FRAME_PIXELS`]) and, where `pixels`, the BGR pixels.
+fn run_jpeg(bytes: &[u8], pixels: bool) -> Result<Jpeg, String> {
     JPEG_WARNING.with(|w| w.borrow_mut().take());
     // SAFETY: an all-zero `jpeg_error_mgr` is a valid value of the plain C struct (null function
     // pointers, zero counters), and `jpeg_std_error` then fills in libjpeg's defaults.

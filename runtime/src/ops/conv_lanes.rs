@@ -18,21 +18,25 @@ const L: usize = 16;
 #[cfg(target_arch = "x86_64")]
 const CHUNK: usize = 128;
 
-/// One 64-byte line of packed weights (so that every tap's registers load aligned).
+/// One 64-byte line of packed weights, f32 or i32 words (so that every tap's registers load
+/// aligned).
 #[derive(Clone, Copy)]
 #[repr(C, align(64))]
-struct Line([f32; L]);
+struct Line<T>([T; L]);
 
-/// Weights packed for tiles of `16·v` channels: `[block][tap][16·v]`, zero past the last
-/// output channel.
-pub(crate) struct LanePack {
+/// Weights packed for tiles of `16·v` channels: `[block][tap][16·v]` values of 4 bytes (f32
+/// weights, or i32 words of four i8 weights), zero past the last output channel.
+pub(crate) struct Lanes<T> {
     v: usize,
     taps: usize,
     co: usize,
-    lines: Vec<Line>,
+    lines: Vec<Line<T>>,
 }
 
-impl LanePack {
+/// The f32 weights of [`super::conv::PackedConv`], packed for its channels-in-lanes tiles.
+pub(crate) type LanePack = Lanes<f32>;
+
+impl<T: Copy + Default> Lanes<T> {
     /// The tile for `co` output channels, or `None` when the positions-in-lanes tile suits them
     /// better (fewer than 32 channels would leave most lanes empty): three registers (48
     /// channels by 8 positions) where 48 divides `co`, else two (32 by 12).
@@ -44,26 +48,27 @@ impl LanePack {
         }
     }
 
-    /// Pack OIHW `weight` (`[co][taps]`) for `v` registers, keeping the taps `live`.
-    pub(crate) fn new(weight: &[f32], taps: usize, live: &[usize], co: usize, v: usize) -> LanePack {
+    /// Pack `taps` taps of `co` channels for `v` registers: `weight(o, tap)`.
+    pub(crate) fn pack(co: usize, taps: usize, v: usize, weight: impl Fn(usize, usize) -> T) -> Lanes<T> {
+        assert!(size_of::<T>() == 4, "lines of 16 values of 4 bytes");
         let oc = L * v;
         let blocks = co.div_ceil(oc);
-        let mut lines = Vec::with_capacity(blocks * live.len() * v);
+        let mut lines = Vec::with_capacity(blocks * taps * v);
         for b in 0..blocks {
-            for &t in live {
+            for t in 0..taps {
                 for k in 0..v {
-                    let mut line = Line([0.0; L]);
+                    let mut line = Line([T::default(); L]);
                     for (r, w) in line.0.iter_mut().enumerate() {
                         let o = b * oc + k * L + r;
                         if o < co {
-                            *w = weight[o * taps + t];
+                            *w = weight(o, t);
                         }
                     }
                     lines.push(line);
                 }
             }
         }
-        LanePack { v, taps: live.len(), co, lines }
+        Lanes { v, taps, co, lines }
     }
 
     /// Channels per tile.
@@ -72,7 +77,7 @@ impl LanePack {
     }
 
     /// Positions per tile.
-    fn positions(&self) -> usize {
+    pub(super) fn positions(&self) -> usize {
         if self.v == 3 {
             8
         } else {
@@ -80,11 +85,30 @@ impl LanePack {
         }
     }
 
-    /// The packed weights as one slice of floats (for [`PartialEq`] and the kernels).
-    pub(crate) fn values(&self) -> &[f32] {
-        // SAFETY: `Line` is `repr(C)` over `[f32; L]` (its alignment adds no padding: 64 bytes
-        // each), so the lines are `L · len` contiguous, initialised floats.
-        unsafe { std::slice::from_raw_parts(self.lines.as_ptr().cast::<f32>(), self.lines.len() * L) }
+    /// Output channels and taps packed.
+    pub(super) fn shape(&self) -> (usize, usize) {
+        (self.co, self.taps)
+    }
+
+    /// The packed values as one slice (for [`PartialEq`] and the kernels).
+    pub(crate) fn values(&self) -> &[T] {
+        // SAFETY: `Line<T>` is `repr(C)` over `[T; L]` with `T` of 4 bytes (asserted in
+        // `pack`): 64 bytes, so its alignment adds no padding and the lines are `L · len`
+        // contiguous, initialised values.
+        unsafe { std::slice::from_raw_parts(self.lines.as_ptr().cast::<T>(), self.lines.len() * L) }
+    }
+
+    /// The values of channel block `b` (`[tap][16·v]`).
+    pub(super) fn block(&self, b: usize) -> &[T] {
+        let n = self.taps * self.channels();
+        &self.values()[b * n..(b + 1) * n]
+    }
+}
+
+impl LanePack {
+    /// Pack OIHW `weight` (`[co][taps]`) for `v` registers, keeping the taps `live`.
+    pub(crate) fn new(weight: &[f32], taps: usize, live: &[usize], co: usize, v: usize) -> LanePack {
+        Lanes::pack(co, live.len(), v, |o, i| weight[o * taps + live[i]])
     }
 
     /// `out` (`co` planes of `oh·ow`) = `bias` + the convolution of `padded` (which extends
@@ -92,12 +116,12 @@ impl LanePack {
     /// channel block and, where there are few blocks, by runs of positions.
     pub(crate) fn run(&self, l: &Layout, padded: &[f32], bias: &[f32], out: &mut [f32]) {
         let (oc, px) = (self.channels(), self.positions());
-        assert!(self.lines.len() * L == self.co.div_ceil(oc) * self.taps * oc && l.taps.len() == self.taps);
+        assert!(l.taps.len() == self.taps);
         assert!(l.taps.iter().all(|&t| t + l.positions() + px <= padded.len()));
         assert!(out.len() == self.co * l.oh * l.ow && bias.len() >= self.co);
         let dst = SyncPtr(out.as_mut_ptr());
         for_each_item(self.co.div_ceil(oc), l.positions().div_ceil(px), |b, first, count| {
-            let weights = &self.values()[b * self.taps * oc..(b + 1) * self.taps * oc];
+            let weights = self.block(b);
             let mut sums = vec![0f32; count * oc * px];
             match (self.v, crate::isa::f32_kernel()) {
                 // SAFETY: the CPU has AVX-512F; every read stays in `padded` (asserted above:

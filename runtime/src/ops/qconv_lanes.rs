@@ -9,7 +9,7 @@
 //! formula lane by lane (each lane its channel's offset and scale), so the bytes are the same.
 
 use super::conv_kernel::Layout;
-use super::conv_lanes::{for_each_item, outputs, LanePack};
+use super::conv_lanes::{for_each_item, outputs, Lanes};
 use super::SyncPtr;
 
 /// Output channels per register.
@@ -18,73 +18,38 @@ const L: usize = 16;
 #[cfg(target_arch = "x86_64")]
 const CHUNK: usize = 128;
 
-/// One 64-byte line of weight words (every register loads aligned).
-#[derive(Clone, Copy)]
-#[repr(C, align(64))]
-struct Line([i32; L]);
-
-/// Weight words packed for tiles of `16·v` channels (`[block][group][16·v]`, zero past the
-/// last channel), with each channel's requantisation.
+/// Weight words packed for tiles of `16·v` channels ([`Lanes`]: `[block][group][16·v]`, zero
+/// past the last channel), with each channel's requantisation.
 pub(crate) struct QLanePack {
-    v: usize,
-    groups: usize,
-    co: usize,
-    lines: Vec<Line>,
+    lanes: Lanes<i32>,
     /// Per channel, padded to whole blocks: `bias − x0·Σw` and the scale.
     offset: Vec<i32>,
     scale: Vec<f32>,
 }
 
 impl QLanePack {
-    /// The tile for `co` channels (as [`LanePack::registers_for`]), or `None`.
+    /// The tile for `co` channels (as [`Lanes::registers_for`]), or `None`.
     pub(crate) fn registers_for(co: usize) -> Option<usize> {
-        LanePack::registers_for(co)
+        Lanes::<i32>::registers_for(co)
     }
 
     /// Pack `words` (`[co][groups]`, four i8 weights each) for `v` registers.
     pub(crate) fn new(words: &[i32], groups: usize, co: usize, v: usize, offset: &[i32], scale: &[f32]) -> QLanePack {
-        let oc = L * v;
-        let blocks = co.div_ceil(oc);
-        let mut lines = Vec::with_capacity(blocks * groups * v);
-        for b in 0..blocks {
-            for g in 0..groups {
-                for k in 0..v {
-                    let mut line = Line([0; L]);
-                    for (r, w) in line.0.iter_mut().enumerate() {
-                        let o = b * oc + k * L + r;
-                        if o < co {
-                            *w = words[o * groups + g];
-                        }
-                    }
-                    lines.push(line);
-                }
-            }
-        }
-        let padded = |o: usize| o < co;
-        let offset = (0..blocks * oc).map(|o| if padded(o) { offset[o] } else { 0 }).collect();
-        let scale = (0..blocks * oc).map(|o| if padded(o) { scale[o] } else { 0.0 }).collect();
-        QLanePack { v, groups, co, lines, offset, scale }
+        let lanes = Lanes::pack(co, groups, v, |o, g| words[o * groups + g]);
+        let padded = co.div_ceil(lanes.channels()) * lanes.channels();
+        let offset = (0..padded).map(|o| if o < co { offset[o] } else { 0 }).collect();
+        let scale = (0..padded).map(|o| if o < co { scale[o] } else { 0.0 }).collect();
+        QLanePack { lanes, offset, scale }
     }
 
     /// Channels per tile.
     pub(crate) fn channels(&self) -> usize {
-        L * self.v
-    }
-
-    /// Positions per tile.
-    fn positions(&self) -> usize {
-        if self.v == 3 {
-            8
-        } else {
-            12
-        }
+        self.lanes.channels()
     }
 
     /// The packed words as one slice.
     pub(crate) fn values(&self) -> &[i32] {
-        // SAFETY: `Line` is `repr(C)` over `[i32; L]`, 64 bytes with no padding: the lines are
-        // `L · len` contiguous, initialised i32.
-        unsafe { std::slice::from_raw_parts(self.lines.as_ptr().cast::<i32>(), self.lines.len() * L) }
+        self.lanes.values()
     }
 
     /// `out` (`co` planes of `oh·ow` bytes): the requantised convolution of `words` (u8 inputs,
@@ -92,15 +57,16 @@ impl QLanePack {
     /// over tract's threads by channel block and, where there are few blocks, by runs of
     /// positions.
     pub(crate) fn run(&self, g: &Layout, words: &[u32], y0: u8, out: &mut [u8]) {
-        let (oc, px) = (self.channels(), self.positions());
-        assert!(self.lines.len() * L == self.co.div_ceil(oc) * self.groups * oc && g.taps.len() == self.groups);
+        let (oc, px) = (self.channels(), self.lanes.positions());
+        let (co, groups) = self.lanes.shape();
+        assert!(g.taps.len() == groups);
         assert!(g.taps.iter().all(|&t| t + g.positions() + px <= words.len()));
-        assert!(out.len() == self.co * g.oh * g.ow);
+        assert!(out.len() == co * g.oh * g.ow);
         let dst = SyncPtr(out.as_mut_ptr());
-        for_each_item(self.co.div_ceil(oc), g.positions().div_ceil(px), |b, first, count| {
-            let weights = &self.values()[b * self.groups * oc..(b + 1) * self.groups * oc];
+        for_each_item(co.div_ceil(oc), g.positions().div_ceil(px), |b, first, count| {
+            let weights = self.lanes.block(b);
             let mut sums = vec![0i32; count * oc * px];
-            match self.v {
+            match oc / L {
                 // SAFETY: `QLanePack`s are made only where the CPU has AVX-512 VNNI
                 // (`PackedQConv::new`); every read stays in `words` (asserted above) and
                 // `weights`.
@@ -111,7 +77,7 @@ impl QLanePack {
                 2 if crate::isa().vnni => unsafe { tiles_vnni::<2, 12>(g, words, weights, first, &mut sums) },
                 _ => tiles(g, oc, px, words, weights, first, &mut sums),
             }
-            let rows = oc.min(self.co - b * oc);
+            let rows = oc.min(co - b * oc);
             let plane = g.oh * g.ow;
             let offset = &self.offset[b * oc..(b + 1) * oc];
             let scale = &self.scale[b * oc..(b + 1) * oc];
