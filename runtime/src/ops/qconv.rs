@@ -1,4 +1,5 @@
-//! Stride-1 and stride-2 u8 x i8 convolutions (tract's quantised `Conv`, from `QLinearConv`) as
+//! Stride-1 and stride-2 u8 x i8 convolutions (tract's quantised `Conv`, from `QLinearConv`, and
+//! the quantised `EinSum` tract makes of a 1x1 one: HMG's patch embeddings, 1.5 -> 0.09 ms) as
 //! [`PackedQConv`]: the direct convolution of [`super::conv`] on AVX-512 VNNI, where
 //! `vpdpbusd` multiplies four u8 inputs by four i8 weights and adds them to an i32 lane.
 //!
@@ -19,6 +20,7 @@ use std::sync::Arc;
 
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
+use tract_nnef::tract_core::ops::einsum::EinSum;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv_kernel::Layout;
@@ -266,38 +268,26 @@ fn konst_values<T: Datum + Copy>(fact: &TypedFact, n: usize) -> TractResult<Opti
     })
 }
 
-/// The [`PackedQConv`] for `node` if it is a stride-1 or stride-2 quantised convolution with u8 input and
-/// output, constant i8 weights of zero point 0, constant quantisation parameters, and the CPU
-/// has AVX-512 VNNI or the aarch64 dot product.
+/// The [`PackedQConv`] for `node` if it is a quantised convolution with u8 input and output,
+/// constant i8 weights of zero point 0 and constant quantisation parameters (tract's `Conv` of
+/// stride 1 or 2, or the `EinSum` tract makes of a 1x1 convolution: HMG's patch embeddings), and
+/// the CPU has AVX-512 VNNI or the aarch64 dot product.
 pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedQConv>> {
-    let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
     if !has_words_path() {
         return Ok(None);
     }
     let facts = model.node_input_facts(node.id)?;
-    let ps = &conv.pool_spec;
-    let Some(pad) = pads_2d(&ps.padding) else { return Ok(None) };
+    let Some(shape) = conv_shape(node, &facts).or_else(|| pointwise_shape(node, &facts)) else { return Ok(None) };
+    // Both ops take x, the weights, the bias, then x0, x_scale, w0, w_scale, y0, y_scale.
     let out_dt = node.outputs[0].fact.datum_type;
-    let plain = conv.q_params.is_some()
-        && facts.len() == 9
+    let plain = facts.len() == 9
         && out_dt.unquantized() == u8::datum_type()
         && facts[0].datum_type.unquantized() == u8::datum_type()
-        && facts[1].datum_type.unquantized() == i8::datum_type()
-        && conv.kernel_fmt == KernelFormat::OIHW
-        && ps.data_format == DataFormat::NCHW
-        && ps.kernel_shape.len() == 2
-        && conv.group == 1
-        && all_ones(&ps.dilations);
+        && facts[1].datum_type.unquantized() == i8::datum_type();
     if !plain {
         return Ok(None);
     }
-    let stride = match ps.strides.as_deref() {
-        None | Some([1, 1]) => 1,
-        Some([2, 2]) => 2,
-        _ => return Ok(None),
-    };
-    let Some(&[_, ci, h, w]) = facts[0].shape.as_concrete() else { return Ok(None) };
-    let co = ps.output_channels;
+    let co = shape.co;
     let (Some(kernel), Some(bias)) = (&facts[1].konst, konst_values::<i32>(facts[2], co)?) else { return Ok(None) };
     let params = (
         konst_values::<i32>(facts[3], 1)?,
@@ -309,15 +299,67 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     );
     let (Some(x0), Some(x_scale), Some(k0), Some(k_scale), Some(y0), Some(y_scale)) = params else { return Ok(None) };
     let (Ok(x0), Ok(y0)) = (u8::try_from(x0[0]), u8::try_from(y0[0])) else { return Ok(None) };
-    if k0.iter().any(|&z| z != 0) {
+    if k0.iter().any(|&z| z != 0) || kernel.len() != co * shape.ci * shape.kh * shape.kw {
         return Ok(None);
     }
-    let shape = ConvShape { ci, h, w, co, kh: ps.kernel_shape[0], kw: ps.kernel_shape[1], pad, stride };
     let kernel = kernel.try_as_plain_ram()?;
     // SAFETY: the kernel's datum type is i8, possibly with quantisation parameters (checked).
     let kernel = unsafe { kernel.as_slice_unchecked::<i8>() };
     let q = QuantParams { x0, x_scale: x_scale[0], k_scale, y0, y_scale: y_scale[0] };
     Ok(Some(PackedQConv::new(shape, kernel, &bias, q, out_dt)?))
+}
+
+/// The shape of a quantised NCHW `Conv` with OIHW weights, one group, stride 1 or 2 and no
+/// dilation, on a concrete input.
+fn conv_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<ConvShape> {
+    let conv = node.op_as::<Conv>()?;
+    let ps = &conv.pool_spec;
+    let plain = conv.q_params.is_some()
+        && conv.kernel_fmt == KernelFormat::OIHW
+        && ps.data_format == DataFormat::NCHW
+        && ps.kernel_shape.len() == 2
+        && conv.group == 1
+        && all_ones(&ps.dilations);
+    if !plain {
+        return None;
+    }
+    let stride = match ps.strides.as_deref() {
+        None | Some([1, 1]) => 1,
+        Some([2, 2]) => 2,
+        _ => return None,
+    };
+    let pad = pads_2d(&ps.padding)?;
+    let &[_, ci, h, w] = facts.first()?.shape.as_concrete()? else { return None };
+    let (kh, kw) = (ps.kernel_shape[0], ps.kernel_shape[1]);
+    Some(ConvShape { ci, h, w, co: ps.output_channels, kh, kw, pad, stride })
+}
+
+/// The shape of the quantised `EinSum` tract makes of a 1x1 convolution, `NIHW,OI,O->NOHW`
+/// (whatever its axis letters), with constant `[O, I]` weights and an i32 bias, as a 1x1
+/// [`ConvShape`]. (NanoTrack's pointwise layers come as `IHW,OI,O->OHW`, without the batch
+/// axis, and stay with tract's integer products; PackedQConv was not measured on them.)
+fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<ConvShape> {
+    let einsum = node.op_as::<EinSum>()?;
+    einsum.q_params?;
+    let expr = einsum.axes.to_string();
+    let (inputs, output) = expr.split_once("->")?;
+    let terms: Vec<Vec<char>> = inputs.split(',').map(|t| t.chars().collect()).collect();
+    let out: Vec<char> = output.chars().collect();
+    let [x, w, b, ..] = terms.as_slice() else { return None };
+    let pointwise = x.len() == 4
+        && w.len() == 2
+        && out.len() == 4
+        && (out[0], out[1], out[2], out[3]) == (x[0], w[0], x[2], x[3])
+        && w[1] == x[1]
+        && !out.contains(&x[1])
+        && (b.is_empty() || b.as_slice() == [w[0]])
+        && terms[3..].iter().all(|t| t.is_empty() || t.as_slice() == [w[0]]);
+    if !pointwise || facts.get(2)?.datum_type != i32::datum_type() {
+        return None;
+    }
+    let &[_, ci, h, w] = facts.first()?.shape.as_concrete()? else { return None };
+    let &[co, wi] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
+    (wi == ci).then_some(ConvShape { ci, h, w, co, kh: 1, kw: 1, pad: [0; 4], stride: 1 })
 }
 
 /// Zero points and scales of a quantised convolution (weights: zero point 0).
@@ -486,6 +528,63 @@ mod tests {
         check(ConvShape { ci: 128, h: 6, w: 6, co: 32, kh: 1, kw: 1, pad: [0, 2, 1, 0], stride: 1 });
         // 96 outputs: two blocks of 48 channels in lanes (on VNNI), 600 tap groups in 5 passes.
         check(ConvShape { ci: 96, h: 9, w: 12, co: 96, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 });
+    }
+
+    /// The quantised `EinSum` tract makes of a 1x1 convolution (HMG's patch embeddings) becomes
+    /// a [`PackedQConv`] giving tract's own bytes; other einsums stay.
+    #[test]
+    fn the_einsum_of_a_pointwise_convolution_gives_tract_s_bytes() {
+        let run = |expr: &str, x_shape: [usize; 4], w_shape: &[usize], made: usize| {
+            let (ci, co) = (x_shape[1], w_shape[0]);
+            let mut model = TypedModel::default();
+            let x = model.add_source("x", u8::fact(x_shape)).unwrap();
+            let w: Vec<i8> = (0..w_shape.iter().product()).map(|i: usize| ((i * 104729) % 255) as i32 as i8).collect();
+            let konst = |name: &str, t: Tensor, model: &mut TypedModel| model.add_const(name, t).unwrap();
+            let w = konst("w", Tensor::from_shape(w_shape, &w).unwrap(), &mut model);
+            let bias: Vec<i32> = (0..co as i32).map(|o| 300 * o - 2000).collect();
+            let b = konst("b", Tensor::from_shape(&[co], &bias).unwrap(), &mut model);
+            let scalars = [
+                tensor0(3i32),
+                tensor0(0.02f32),
+                tensor0(0i32),
+                tensor0(0.2f32 / ((ci as f32).sqrt() * 127.0)),
+                tensor0(100i32),
+                tensor0(0.01f32),
+            ];
+            let mut inputs = vec![x, w, b];
+            for (i, t) in scalars.into_iter().enumerate() {
+                inputs.push(konst(&format!("q{i}"), t, &mut model));
+            }
+            let op = EinSum::newq(expr.parse().unwrap(), i32::datum_type(), u8::datum_type());
+            let y = model.wire_node("embed", op, &inputs).unwrap();
+            model.select_output_outlets(&y).unwrap();
+            let n: usize = x_shape.iter().product();
+            let input = Tensor::from_shape(&x_shape, &(0..n).map(|i| ((i * 7919) % 256) as u8).collect::<Vec<_>>());
+            let input = input.unwrap().into_tvalue();
+            let reference = model.clone();
+            let done = crate::ops::accelerate(&mut model).unwrap();
+            assert_eq!(done.int8_convolutions, made, "{expr}");
+            if made == 0 {
+                return;
+            }
+            let want = reference.into_runnable().unwrap().run(tvec![input.clone()]).unwrap();
+            let got = model.into_runnable().unwrap().run(tvec![input]).unwrap();
+            let (got, want) = (got[0].try_as_plain_ram().unwrap(), want[0].try_as_plain_ram().unwrap());
+            // SAFETY: both outputs are u8 (possibly quantised).
+            let (got, want) = unsafe { (got.as_slice_unchecked::<u8>(), want.as_slice_unchecked::<u8>()) };
+            let spread: std::collections::HashSet<u8> = want.iter().copied().collect();
+            assert!(spread.len() > 50, "{expr}: the outputs should spread over the bytes: {}", spread.len());
+            assert_eq!(got, want, "{expr}");
+        };
+        if !has_words_path() {
+            eprintln!("NOTE: no AVX-512 VNNI or aarch64 dot product here (or PRL_ISA caps it): the pointwise einsum stays with tract and is NOT tested as a PackedQConv here");
+            return;
+        }
+        // HMG's form (192 channels, 11x11 tokens) with other letters, and 40 outputs (32-channel tiles).
+        run("aicd,bi,b,,,,,,->abcd", [1, 192, 11, 11], &[192, 192], 1);
+        run("NIHW,OI,O,,,,,,->NOHW", [1, 24, 5, 7], &[40, 24], 1);
+        // Not a pointwise convolution (the weights' axes the other way round): left alone.
+        run("NIHW,IO,O,,,,,,->NOHW", [1, 24, 5, 7], &[24, 40], 0);
     }
 
     #[test]
