@@ -67,8 +67,10 @@ impl ChannelMaxPool {
         output_tensor(&[n, c, oh, ow], |out: &mut [T]| {
             par_chunks(out, oh * ow, |plane, dst| {
                 let src = &input[plane * h * w..(plane + 1) * h * w];
-                // The window's rows reduced first (element-wise, vectorised), then its columns.
+                // The window's rows reduced first, then its columns at every column (both
+                // element-wise over shifted slices, vectorised), then every `stride`-th kept.
                 let mut cols = vec![lowest; w];
+                let mut wide = vec![lowest; w - self.k + 1];
                 for (y, row) in dst.chunks_exact_mut(ow).enumerate() {
                     cols.fill(lowest);
                     for r in src[y * self.stride * w..(y * self.stride + self.k) * w].chunks_exact(w) {
@@ -76,9 +78,14 @@ impl ChannelMaxPool {
                             *m = max(*m, v);
                         }
                     }
-                    for (x, d) in row.iter_mut().enumerate() {
-                        let x0 = x * self.stride;
-                        *d = cols[x0..x0 + self.k].iter().fold(lowest, |m, &v| max(m, v));
+                    wide.fill(lowest);
+                    for j in 0..self.k {
+                        for (m, &v) in wide.iter_mut().zip(&cols[j..]) {
+                            *m = max(*m, v);
+                        }
+                    }
+                    for (d, &m) in row.iter_mut().zip(wide.iter().step_by(self.stride)) {
+                        *d = m;
                     }
                 }
             });
@@ -136,24 +143,28 @@ mod tests {
 
     #[test]
     fn takes_the_maximum_of_each_window() {
-        let op = ChannelMaxPool { k: 3, stride: 2 };
-        // 2 channels of 7x5: output 3x2; channel 1 holds the negated values.
-        let v: Vec<f32> = (0..35).map(|i| ((i * 17) % 23) as f32).collect();
-        let data: Vec<f32> = v.iter().copied().chain(v.iter().map(|x| -x)).collect();
-        let v = &v;
-        let x = tract_ndarray::Array4::from_shape_vec((1, 2, 7, 5), data).unwrap();
-        let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();
-        let out = out[0].try_as_plain_ram().unwrap();
-        let out = out.as_slice::<f32>().unwrap();
-        assert_eq!(out.len(), 2 * 3 * 2);
-        for c in 0..2 {
-            let sign = if c == 0 { 1.0 } else { -1.0 };
-            for y in 0..3 {
-                for x in 0..2 {
-                    let want = (0..3)
-                        .flat_map(|i| (0..3).map(move |j| sign * v[(2 * y + i) * 5 + 2 * x + j]))
-                        .fold(f32::NEG_INFINITY, f32::max);
-                    assert_eq!(out[(c * 3 + y) * 2 + x], want, "channel {c} ({y},{x})");
+        // Windows and strides of the networks' pools and others, odd and even sides; channel 1
+        // holds the negated values.
+        for (k, stride, h, w) in [(3, 2, 7, 5), (3, 2, 8, 10), (2, 2, 6, 9), (3, 1, 5, 6), (5, 3, 11, 12)] {
+            let op = ChannelMaxPool { k, stride };
+            let (oh, ow) = (op.out(h), op.out(w));
+            let v: Vec<f32> = (0..h * w).map(|i| ((i * 17) % 23) as f32).collect();
+            let data: Vec<f32> = v.iter().copied().chain(v.iter().map(|x| -x)).collect();
+            let v = &v;
+            let x = tract_ndarray::Array4::from_shape_vec((1, 2, h, w), data).unwrap();
+            let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();
+            let out = out[0].try_as_plain_ram().unwrap();
+            let out = out.as_slice::<f32>().unwrap();
+            assert_eq!(out.len(), 2 * oh * ow);
+            for c in 0..2 {
+                let sign = if c == 0 { 1.0 } else { -1.0 };
+                for y in 0..oh {
+                    for x in 0..ow {
+                        let want = (0..k)
+                            .flat_map(|i| (0..k).map(move |j| sign * v[(stride * y + i) * w + stride * x + j]))
+                            .fold(f32::NEG_INFINITY, f32::max);
+                        assert_eq!(out[(c * oh + y) * ow + x], want, "k {k} stride {stride}: channel {c} ({y},{x})");
+                    }
                 }
             }
         }
