@@ -70,32 +70,35 @@ impl ConvShape {
     /// Write one input plane `src` (`[h, w]`) into its zero-padded form `dst` (`stride²` phases
     /// of `[hq, wq]`, [`Self::phase`]); `dst`'s padding is left as it is (zero).
     pub(crate) fn pad_plane(&self, src: &[f32], dst: &mut [f32]) {
-        let (hq, wq) = self.phase();
+        let wq = self.phase().1;
         for (y, row) in src.chunks_exact(self.w).enumerate() {
             let yp = y + self.pad[0];
             if self.stride == 1 {
                 let at = yp * wq + self.pad[1];
                 dst[at..at + self.w].copy_from_slice(row);
             } else {
-                scatter_row_s2(&mut dst[..4 * hq * wq], row, yp, self.pad[1], hq, wq);
+                for (first, at) in self.phase_runs(yp) {
+                    let dst = &mut dst[at..at + (row.len() - first).div_ceil(2)];
+                    dst.iter_mut().zip(row[first..].iter().step_by(2)).for_each(|(d, &v)| *d = v);
+                }
             }
         }
     }
-}
 
-/// Write one input `row`, padded row `yp` with `pad_left` columns of padding before it, into
-/// the four phases (`[row parity][column parity][hq][wq]`) of a plane padded for stride 2:
-/// even and odd columns each go to one phase row as a contiguous run.
-fn scatter_row_s2(phases: &mut [f32], row: &[f32], yp: usize, pad_left: usize, hq: usize, wq: usize) {
-    let row_of = |parity: usize| ((yp % 2) * 2 + parity) * hq * wq + (yp / 2) * wq;
-    let p = pad_left;
-    for (first, parity, col) in [(0, p & 1, p >> 1), (1, (p + 1) & 1, (p + 1) >> 1)] {
-        if first >= row.len() {
-            continue;
-        }
-        let at = row_of(parity) + col;
-        let dst = &mut phases[at..at + (row.len() - first).div_ceil(2)];
-        dst.iter_mut().zip(row[first..].iter().step_by(2)).for_each(|(d, &v)| *d = v);
+    /// Where input row `yp` (a padded row index) goes in a plane padded for stride 2 (four
+    /// phases, `[row parity][column parity][hq][wq]`): for each column parity, the first of the
+    /// row's values with that padded parity, `first` (0 or 1), and the phase index `at` of its
+    /// slot. Values `first, first + 2, ...` go to `at, at + 1, ...`; a parity the row has no
+    /// value of (a one-column row) is left out.
+    pub(crate) fn phase_runs(&self, yp: usize) -> impl Iterator<Item = (usize, usize)> {
+        let (hq, wq) = self.phase();
+        let row_of = move |parity: usize| ((yp % 2) * 2 + parity) * hq * wq + (yp / 2) * wq;
+        let p = self.pad[1];
+        let w = self.w;
+        [(0, p & 1, p >> 1), (1, (p + 1) & 1, (p + 1) >> 1)]
+            .into_iter()
+            .filter(move |&(first, _, _)| first < w)
+            .map(move |(first, parity, col)| (first, row_of(parity) + col))
     }
 }
 

@@ -169,10 +169,10 @@ impl PackedQConv {
                         continue;
                     }
                     // Stride 2: even and odd padded columns go to the row's two phases.
-                    for (x, &v) in row.iter().enumerate() {
-                        let xp = x + s.pad[1];
-                        let at = ((((yp & 1) * 2 + (xp & 1)) * hq) + yp / 2) * wq + xp / 2;
-                        bytes[at * 4 + c % 4] = v;
+                    for (first, at) in s.phase_runs(yp) {
+                        for (i, &v) in row[first..].iter().step_by(2).enumerate() {
+                            bytes[(at + i) * 4 + c % 4] = v;
+                        }
                     }
                 }
             }
