@@ -14,7 +14,7 @@ fn shared() -> std::path::PathBuf {
 fn pipeline(c: &mut Criterion) {
     let seq = Sequence::open(&shared().join("data/uav123_10fps/building4")).expect("building4");
     let frame = load_frame(&seq.frames[0]).expect("frame");
-    let init = init_box_from_groundtruth(seq.groundtruth.as_ref().expect("ground truth")[0]);
+    let init = init_box_from_groundtruth(seq.groundtruth().expect("ground truth")[0]);
     let checkpoint = std::env::var_os("PRL_GOLDEN_DIR")
         .map(std::path::PathBuf::from)
         .unwrap_or_else(|| shared().join("fixtures/prl-golden-v1"))

@@ -14,7 +14,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     set_threads(std::thread::available_parallelism().map_or(1, |n| n.get()));
     for name in ["wakeboard7", "building4", "wakeboard10"] {
         let seq = Sequence::open(&root.join(name))?;
-        let gt = seq.groundtruth.clone().ok_or("no ground truth")?;
+        let gt = seq.groundtruth().cloned().ok_or("no ground truth")?;
         let plan = Plan::load(&plan_dir)?;
         let config = plan.manifest().tracker.clone();
         let mut tracker = Tracker::new(plan, config);

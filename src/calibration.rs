@@ -62,7 +62,7 @@ pub fn calibration_crops(
     let mut names = vec![];
     for dir in &spec.sequences {
         let seq = Sequence::open(dir)?;
-        let gt = seq.groundtruth.as_ref().ok_or_else(|| InputError::new(dir, "no ground truth to calibrate along"))?;
+        let gt = seq.groundtruth().ok_or_else(|| InputError::new(dir, "no ground truth to calibrate along"))?;
         let gt_file = dir.join("groundtruth_rect.txt");
         let first = load_frame(&seq.frames[0])?;
         let template = cropper

@@ -136,7 +136,10 @@ pub fn detect(root: &Path) -> Result<Format, InputError> {
         }
     }
     for d in subdirs(root)? {
-        if d.join("groundtruth_rect.txt").is_file() || d.join("img").is_dir() {
+        if d.join("groundtruth_rect.txt").is_file()
+            || d.join("groundtruth_rect.1.txt").is_file()
+            || d.join("img").is_dir()
+        {
             return Ok(Format::Otb);
         }
         if d.join("groundtruth.txt").is_file() {
@@ -146,14 +149,21 @@ pub fn detect(root: &Path) -> Result<Format, InputError> {
     Err(err(root, "unknown dataset layout: expected a pysot JSON, data_seq/ with anno/ or anno_l/, or one folder per sequence with its ground truth (pass --format)"))
 }
 
-/// OTB / DTB70 / GOT-10k: one folder per sequence.
+/// OTB / DTB70 / GOT-10k: one folder per sequence. A folder with several targets (OTB's
+/// `groundtruth_rect.1.txt`, `.2.txt`) gives one video per target, named as pysot-toolkit's OTB
+/// names them: `Jogging-1`, `Jogging-2`.
 fn folders(root: &Path) -> Result<Dataset, InputError> {
     let mut videos = vec![];
     for d in subdirs(root)? {
         let s = Sequence::open(&d)?;
-        let Some(gt) = s.groundtruth else { continue };
-        let anno = d.join("groundtruth_rect.txt");
-        videos.push(video(s.name, s.frames, gt, &anno)?);
+        let several = s.targets.len() > 1;
+        for t in s.targets {
+            let name = match t.number {
+                Some(n) if several => format!("{}-{n}", s.name),
+                _ => s.name.clone(),
+            };
+            videos.push(video(name, s.frames.clone(), t.boxes, &t.file)?);
+        }
     }
     Ok(Dataset { name: name_of(root), videos })
 }

@@ -24,5 +24,5 @@ pub use frames::{
 pub use metrics::iou;
 pub use sequence::{
     box_file_limit, init_box_from_groundtruth, parse_box, parse_boxes, parse_boxes_text, read_bounded,
-    read_text_bounded, InputError, Sequence,
+    read_text_bounded, GroundTruth, InputError, Sequence, MAX_GROUNDTRUTH_FILES,
 };

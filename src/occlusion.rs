@@ -127,7 +127,7 @@ impl LostAndFound {
     /// frame under a final name. Returns how many frames were written.
     pub fn make(&self, src_dir: &Path, out_dir: &Path) -> Result<usize, OcclusionError> {
         let seq = Sequence::open(src_dir)?;
-        let gt = seq.groundtruth.as_ref().ok_or_else(|| {
+        let gt = seq.groundtruth().ok_or_else(|| {
             OcclusionError::Spec(format!("{}: no groundtruth_rect.txt: the target's box is needed", src_dir.display()))
         })?;
         let first = load_frame(&seq.frames[0])?;

@@ -53,44 +53,93 @@ pub fn box_file_limit(frames: usize) -> u64 {
     (1 << 20) + 1024 * frames as u64
 }
 
-/// A sequence: its frames in order and, when known, one ground-truth box per frame.
+/// A sequence: its frames in order and, when known, one ground-truth box per frame for each
+/// of its targets.
 #[derive(Debug, Clone)]
 pub struct Sequence {
     /// Folder name.
     pub name: String,
     /// Frame files, sorted by name.
     pub frames: Vec<PathBuf>,
-    /// `x,y,w,h` per frame (NaN rows where the target is absent), if the sequence has them.
-    pub groundtruth: Option<Vec<[f64; 4]>>,
+    /// The ground truth of each target, in the order of their files' numbers; empty when the
+    /// folder has none.
+    pub targets: Vec<GroundTruth>,
 }
+
+/// One target's ground truth in a sequence folder.
+#[derive(Debug, Clone)]
+pub struct GroundTruth {
+    /// The file it was read from.
+    pub file: PathBuf,
+    /// The number in an OTB-style `groundtruth_rect.<N>.txt` name (`None` for
+    /// `groundtruth_rect.txt` or `groundtruth.txt`).
+    pub number: Option<u32>,
+    /// `x,y,w,h` per frame (NaN rows where the target is absent).
+    pub boxes: Vec<[f64; 4]>,
+}
+
+/// Most ground-truth files one sequence folder may hold (one per target).
+pub const MAX_GROUNDTRUTH_FILES: usize = 64;
 
 const FRAME_EXTENSIONS: [&str; 5] = ["jpg", "jpeg", "png", "bmp", "webp"];
 
 impl Sequence {
     /// An OTB/UAV123-style folder: frames in `img/` (or the folder itself), ground truth in
-    /// `groundtruth_rect.txt` (or `groundtruth.txt`).
+    /// `groundtruth_rect.txt` (or `groundtruth.txt`); a folder with several targets, as OTB's
+    /// `Jogging` and `Skating2`, has one `groundtruth_rect.<N>.txt` per target instead.
     pub fn open(dir: &Path) -> Result<Sequence, InputError> {
         let img = dir.join("img");
         let frames = Self::list_frames(if img.is_dir() { &img } else { dir })?;
-        let gt_path = Self::groundtruth_file(dir);
-        let groundtruth = match gt_path {
-            Some(p) => {
-                let gt = parse_boxes(&p, frames.len())?;
-                if gt.len() < frames.len() {
-                    return Err(InputError::new(&p, format!("{} boxes for {} frames", gt.len(), frames.len())));
-                }
-                Some(gt)
+        let mut targets = vec![];
+        for (file, number) in Self::groundtruth_files(dir)? {
+            let boxes = parse_boxes(&file, frames.len())?;
+            if boxes.len() < frames.len() {
+                return Err(InputError::new(&file, format!("{} boxes for {} frames", boxes.len(), frames.len())));
             }
-            None => None,
-        };
+            targets.push(GroundTruth { file, number, boxes });
+        }
         let name =
             dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| dir.display().to_string());
-        Ok(Sequence { name, frames, groundtruth })
+        Ok(Sequence { name, frames, targets })
     }
 
-    /// The ground-truth file of the sequence folder `dir`, if it has one.
-    pub fn groundtruth_file(dir: &Path) -> Option<PathBuf> {
-        ["groundtruth_rect.txt", "groundtruth.txt"].iter().map(|n| dir.join(n)).find(|p| p.is_file())
+    /// The first target's boxes, if the sequence has ground truth.
+    pub fn groundtruth(&self) -> Option<&Vec<[f64; 4]>> {
+        self.targets.first().map(|t| &t.boxes)
+    }
+
+    /// The ground-truth files of the sequence folder `dir`, each with its number:
+    /// `groundtruth_rect.txt` or `groundtruth.txt` where there is one, else every
+    /// `groundtruth_rect.<N>.txt` in the order of N (empty when there is none).
+    pub fn groundtruth_files(dir: &Path) -> Result<Vec<(PathBuf, Option<u32>)>, InputError> {
+        if let Some(p) = ["groundtruth_rect.txt", "groundtruth.txt"].iter().map(|n| dir.join(n)).find(|p| p.is_file()) {
+            return Ok(vec![(p, None)]);
+        }
+        let entries = std::fs::read_dir(dir).map_err(|e| InputError::new(dir, format!("cannot list: {e}")))?;
+        let mut numbered: Vec<(PathBuf, Option<u32>)> = vec![];
+        for path in entries.filter_map(|e| e.ok().map(|e| e.path())) {
+            let number = path
+                .file_name()
+                .and_then(|n| n.to_str())
+                .and_then(|n| n.strip_prefix("groundtruth_rect.")?.strip_suffix(".txt")?.parse::<u32>().ok());
+            if let Some(n) = number.filter(|_| path.is_file()) {
+                if numbered.len() == MAX_GROUNDTRUTH_FILES {
+                    return Err(InputError::new(
+                        dir,
+                        format!("more than {MAX_GROUNDTRUTH_FILES} groundtruth_rect.<N>.txt files (one per target)"),
+                    ));
+                }
+                numbered.push((path, Some(n)));
+            }
+        }
+        numbered.sort_by_key(|(_, n)| *n);
+        if let Some(w) = numbered.windows(2).find(|w| w[0].1 == w[1].1) {
+            return Err(InputError::new(
+                &w[1].0,
+                format!("a second ground-truth file of target {}", w[1].1.unwrap_or(0)),
+            ));
+        }
+        Ok(numbered)
     }
 
     /// The image files of a folder, sorted by name.

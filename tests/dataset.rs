@@ -35,6 +35,21 @@ fn otb_and_got10k_folders() {
     assert_eq!(b.groundtruth[1], [5.0, 6.0, 7.0, 8.0]);
     assert!(b.groundtruth[2].iter().all(|v| v.is_nan()), "NaN rows kept");
     assert_eq!(b.init, [1.0, 2.0, 3.0, 4.0]);
+    // A sequence with one ground-truth file per target is one video per target, named as
+    // pysot-toolkit's OTB names them; a lone numbered file keeps the sequence's name.
+    frames(&otb.join("Jogging/img"), 3);
+    touch(&otb.join("Jogging/groundtruth_rect.1.txt"), GT3);
+    touch(&otb.join("Jogging/groundtruth_rect.2.txt"), "9,9,9,9\n9,9,9,9\n9,9,9,9\n");
+    frames(&otb.join("Human4/img"), 3);
+    touch(&otb.join("Human4/groundtruth_rect.2.txt"), GT3);
+    let d = Dataset::open(&otb, Format::Auto).unwrap();
+    let names: Vec<_> = d.videos.iter().map(|v| v.name.as_str()).collect();
+    assert_eq!(names, ["Human4", "Jogging-1", "Jogging-2", "a", "b"]);
+    assert_eq!((d.videos[1].init, d.videos[2].init), ([1.0, 2.0, 3.0, 4.0], [9.0; 4]));
+    assert_eq!(d.videos[2].frames, d.videos[1].frames);
+    for v in ["Human4", "Jogging"] {
+        std::fs::remove_dir_all(otb.join(v)).unwrap();
+    }
 
     let got = t.path().join("GOT-10k_val");
     frames(&got.join("GOT-10k_Val_000001"), 3);

@@ -37,7 +37,7 @@ fn fp32_plan_reproduces_the_official_tracker_on_building4() {
     let config = m.tracker.clone();
     let mut tracker = Tracker::new(plan, config);
     let seq = Sequence::open(&common::sequence("building4")).unwrap();
-    let gt = seq.groundtruth.clone().unwrap();
+    let gt = seq.groundtruth().cloned().unwrap();
     let run = tracking::track(&mut tracker, seq.frames.as_slice(), init_box_from_groundtruth(gt[0]), |_, _, _| Ok(()))
         .unwrap();
     let reference = read_boxes(&common::nanotrack_ref_dir().join("building4.txt"));
@@ -70,7 +70,7 @@ fn the_state_tells_a_hidden_target_from_a_tracked_one() {
     let dir = tmp.path().join("wakeboard10-lf");
     assert_eq!(spec.make(&common::sequence("wakeboard10"), &dir).unwrap(), 157);
     let seq = Sequence::open(&dir).unwrap();
-    let gt = seq.groundtruth.clone().unwrap();
+    let gt = seq.groundtruth().cloned().unwrap();
     assert!(gt[40..70].iter().all(|b| b[0].is_nan()) && gt[39][0].is_finite() && gt[70][0].is_finite());
     let plan = Plan::load(&plan_dir).unwrap();
     let config = plan.manifest().tracker.clone();
@@ -98,7 +98,7 @@ fn the_long_term_mode_finds_a_target_the_short_term_tracker_loses() {
     let dir = tmp.path().join("wakeboard10-lf");
     spec.make(&common::sequence("wakeboard10"), &dir).unwrap();
     let seq = Sequence::open(&dir).unwrap();
-    let gt = seq.groundtruth.clone().unwrap();
+    let gt = seq.groundtruth().cloned().unwrap();
     let init = init_box_from_groundtruth(gt[0]);
     let plan = Plan::load(&plan_dir).unwrap();
     let config = plan.manifest().tracker.clone();
@@ -134,7 +134,7 @@ fn several_targets_give_each_the_boxes_of_a_single_target_run() {
     let seq = Sequence::open(&common::sequence("wakeboard7")).unwrap();
     let frames = &seq.frames[..25];
     let inits = [
-        init_box_from_groundtruth(seq.groundtruth.as_ref().unwrap()[0]),
+        init_box_from_groundtruth(seq.groundtruth().unwrap()[0]),
         prl_runtime::BBox { x: 200.0, y: 300.0, w: 60.0, h: 40.0 },
         prl_runtime::BBox { x: 1000.0, y: 100.0, w: 30.0, h: 50.0 },
     ];

@@ -38,7 +38,7 @@ fn held_out_errors(a: &Path, b: &Path) -> [f64; 3] {
     let dir = shared("wakeboard7");
     let seq = Sequence::open(&dir).unwrap();
     let f0 = load_frame(&seq.frames[0]).unwrap();
-    let init = init_box_from_groundtruth(seq.groundtruth.as_ref().unwrap()[0]);
+    let init = init_box_from_groundtruth(seq.groundtruth().unwrap()[0]);
     let spec = CalibrationSpec {
         sequences: vec![dir],
         frames_per_sequence: 4,

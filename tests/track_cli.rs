@@ -126,6 +126,42 @@ fn several_targets_and_the_long_term_mode_from_the_command_line() {
     std::fs::write(&file, "110.5,108.5,36,24\n9e9,0,5,5\n").unwrap();
     let e = stderr(&run(&["--targets", file.to_str().unwrap()]));
     assert!(e.contains("targets.txt line 2 (9e9,0,5,5)") && e.contains("outside"), "{e}");
+    // A sequence folder with one ground-truth file per target (OTB's Jogging): both tracked,
+    // each from its file's first box as tools/test.py hands it to init (x + 0.5, y + 0.5).
+    let seq = dir.path().join("Jogging");
+    frames_dir(&{
+        std::fs::create_dir_all(seq.join("img")).unwrap();
+        seq.join("img")
+    });
+    std::fs::write(seq.join("groundtruth_rect.1.txt"), "110,108,36,24\n110,108,36,24\n110,108,36,24\n").unwrap();
+    std::fs::write(seq.join("groundtruth_rect.2.txt"), "19.5,29.5,40,40\n19.5,29.5,40,40\nNaN,NaN,NaN,NaN\n").unwrap();
+    let seq_results = dir.path().join("jogging.txt");
+    let o = prl(&[
+        "track",
+        "--plan",
+        plan.to_str().unwrap(),
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--results",
+        seq_results.to_str().unwrap(),
+        "--threads",
+        "2",
+        "--long-term",
+    ]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read_to_string(dir.path().join("jogging_1.txt")).unwrap(), first);
+    assert_eq!(std::fs::read_to_string(dir.path().join("jogging_2.txt")).unwrap(), second);
+    assert!(
+        out.contains("targets: 2 on 2 thread(s)")
+            && out.contains("mean IoU per target: 1: 0.")
+            && out.contains(", 2: "),
+        "{out}"
+    );
+    // A refused box is quoted from its ground-truth file.
+    std::fs::write(seq.join("groundtruth_rect.2.txt"), "9e9,0,5,5\n1,1,5,5\n1,1,5,5\n").unwrap();
+    let e = stderr(&prl(&["track", "--plan", plan.to_str().unwrap(), "--sequence", seq.to_str().unwrap()]));
+    assert!(e.contains("groundtruth_rect.2.txt line 1 (9e9,0,5,5)") && e.contains("outside"), "{e}");
 }
 
 #[test]

@@ -41,7 +41,7 @@ fn check_sequence(name: &str) {
     let t = trace(name);
     assert_eq!(seq.frames.len(), t.boxes.len());
     let frames: Vec<Frame> = seq.frames.iter().map(|p| load_frame(p).unwrap()).collect();
-    let init = init_box_from_groundtruth(seq.groundtruth.as_ref().unwrap()[0]);
+    let init = init_box_from_groundtruth(seq.groundtruth().unwrap()[0]);
     assert_eq!([init.x, init.y, init.w, init.h], t.boxes[0], "{name}: init box as tools/test.py gives it");
 
     // Crops, exactly: z on frame 1, x on frames 2 and 3 from the official states.

@@ -14,7 +14,7 @@ fn real_sequences_run_end_to_end() {
     let root = common::golden_dir().join("../../data/uav123_10fps");
     for name in ["wakeboard7", "building4", "wakeboard10"] {
         let seq = Sequence::open(&root.join(name)).unwrap();
-        let gt = seq.groundtruth.as_ref().unwrap();
+        let gt = seq.groundtruth().unwrap();
         assert_eq!(gt.len(), seq.frames.len());
         let plan = Plan::load(common::reference_plan()).unwrap();
         let config = plan.manifest().tracker.clone();

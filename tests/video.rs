@@ -58,7 +58,7 @@ fn a_lossless_video_tracks_exactly_as_its_frames() {
     let video = tmp.path().join("building4.mkv");
     encode(&video, w, h, seq.frames[..n].iter().map(|p| prl_track::load_frame(p).unwrap().bgr().to_vec()));
     let s = |p: &Path| p.to_str().unwrap().to_string();
-    let init = seq.groundtruth.as_ref().unwrap()[0];
+    let init = seq.groundtruth().unwrap()[0];
     let init = format!("{},{},{},{}", init[0] - 1.0, init[1] - 1.0, init[2], init[3]);
     let (from_video, from_frames) = (tmp.path().join("video.txt"), tmp.path().join("frames.txt"));
     let (plan_s, video_s) = (s(&plan), s(&video));

@@ -195,7 +195,7 @@ fn input(seq: Option<&Path>) -> anyhow::Result<(Frame, BBox, String)> {
     let dir = seq.map(Path::to_path_buf).or_else(|| Some(PathBuf::from(DEFAULT_SEQUENCE)).filter(|p| p.is_dir()));
     if let Some(dir) = dir {
         let s = Sequence::open(&dir)?;
-        let gt = s.groundtruth.as_ref().and_then(|g| g.first()).copied().unwrap_or([600.0, 330.0, 80.0, 60.0]);
+        let gt = s.groundtruth().and_then(|g| g.first()).copied().unwrap_or([600.0, 330.0, 80.0, 60.0]);
         return Ok((load_frame(&s.frames[0])?, init_box_from_groundtruth(gt), s.frames[0].display().to_string()));
     }
     let rgb: Vec<u8> = (0..1280 * 720 * 3).map(|i| ((i * 7919) % 251) as u8).collect();

@@ -191,7 +191,7 @@ pub fn run(a: CompareArgs) -> anyhow::Result<()> {
     set_threads(threads);
     let seqs = a.sequences.iter().map(|d| Sequence::open(d)).collect::<Result<Vec<_>, _>>()?;
     let first = &seqs[0];
-    let gt0 = first.groundtruth.as_ref().with_context(|| format!("{}: no ground truth", a.sequences[0].display()))?;
+    let gt0 = first.groundtruth().with_context(|| format!("{}: no ground truth", a.sequences[0].display()))?;
     if first.frames.len() < 2 {
         bail!("{}: at least two frames are needed", a.sequences[0].display());
     }
@@ -301,7 +301,7 @@ fn fidelity(a: &CompareArgs, seqs: &[Sequence], trackers: &mut [Tracker]) -> any
             let seq = &seqs[*t];
             let f0 = load_frame(&seq.frames[0])?;
             size = (f0.width(), f0.height());
-            let init = init_box_from_groundtruth(seq.groundtruth.as_ref().expect("crops need ground truth")[0]);
+            let init = init_box_from_groundtruth(seq.groundtruth().expect("crops need ground truth")[0]);
             for tr in trackers.iter_mut() {
                 tr.init(&f0, init)?;
             }
@@ -335,7 +335,7 @@ fn fidelity(a: &CompareArgs, seqs: &[Sequence], trackers: &mut [Tracker]) -> any
 fn tracking(a: &CompareArgs, seqs: &[Sequence], trackers: &mut [Tracker]) -> anyhow::Result<Vec<SequenceReport>> {
     let mut out = vec![];
     for (dir, seq) in a.sequences.iter().zip(seqs) {
-        let gt = seq.groundtruth.as_ref().with_context(|| format!("{}: no ground truth", dir.display()))?;
+        let gt = seq.groundtruth().with_context(|| format!("{}: no ground truth", dir.display()))?;
         let count = a.max_frames.map_or(seq.frames.len(), |m| m.min(seq.frames.len()));
         let init = init_box_from_groundtruth(gt[0]);
         let mut boxes: Vec<Vec<[f64; 4]>> = vec![];

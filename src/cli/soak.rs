@@ -44,7 +44,7 @@ pub struct SoakArgs {
 pub fn run(a: SoakArgs) -> anyhow::Result<()> {
     set_threads(a.threads);
     let seq = Sequence::open(&a.sequence)?;
-    let gt = seq.groundtruth.as_ref().ok_or_else(|| anyhow::anyhow!("{}: no ground truth", a.sequence.display()))?;
+    let gt = seq.groundtruth().ok_or_else(|| anyhow::anyhow!("{}: no ground truth", a.sequence.display()))?;
     let plan = Plan::load(&a.plan)?;
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config);

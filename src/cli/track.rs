@@ -18,7 +18,8 @@ pub struct TrackArgs {
     /// Plan directory written by `prl compile`.
     #[arg(long, default_value = "models/prl-track/plan")]
     plan: PathBuf,
-    /// OTB/UAV123-style sequence folder (`img/`, `groundtruth_rect.txt`); init from its first box.
+    /// OTB/UAV123-style sequence folder (`img/`, `groundtruth_rect.txt`); init from its first box
+    /// (a folder with one `groundtruth_rect.<N>.txt` per target, as OTB's `Jogging`, tracks them all).
     #[arg(long, value_name = "DIR", required_unless_present_any = ["frames", "video"], conflicts_with_all = ["frames", "video"])]
     sequence: Option<PathBuf>,
     /// A bare folder of frames (needs --init or --targets).
@@ -102,16 +103,15 @@ fn parse_init(s: &str) -> Result<InitArg, String> {
     Ok(InitArg { b: prl_track::parse_box(s)?, text: s.trim().to_string() })
 }
 
-/// Where a sequence's first ground-truth box comes from, quoted as its file has it
+/// Where a target's first ground-truth box comes from, quoted as its `file` has it
 /// (`.../groundtruth_rect.txt line 1 (1e9,0,5,5)`).
-fn first_box_as_written(dir: &Path, parsed: [f64; 4]) -> String {
-    let file = Sequence::groundtruth_file(dir);
-    let line = file.as_ref().and_then(|f| std::fs::read_to_string(f).ok()).and_then(|t| {
+fn first_box_as_written(file: &Path, parsed: [f64; 4]) -> String {
+    let line = std::fs::read_to_string(file).ok().and_then(|t| {
         t.lines().enumerate().find(|(_, l)| !l.trim().is_empty()).map(|(i, l)| (i + 1, l.trim().to_string()))
     });
-    match (file, line) {
-        (Some(f), Some((n, l))) => format!("{} line {n} ({l})", f.display()),
-        _ => format!("the first ground-truth box ({},{},{},{})", parsed[0], parsed[1], parsed[2], parsed[3]),
+    match line {
+        Some((n, l)) => format!("{} line {n} ({l})", file.display()),
+        None => format!("the first ground-truth box ({},{},{},{})", parsed[0], parsed[1], parsed[2], parsed[3]),
     }
 }
 
@@ -270,12 +270,13 @@ fn targets_with_progress<F: Frames + Send>(
     runs
 }
 
-/// The frame as an RGB image with `gt` (red, where known) and every box of `preds` (green) drawn.
-fn with_boxes(f: &Frame, preds: &[Prediction], gt: Option<[f64; 4]>) -> image::RgbImage {
+/// The frame as an RGB image with the ground-truth boxes `gt` (red, where known) and every box of
+/// `preds` (green) drawn.
+fn with_boxes(f: &Frame, preds: &[Prediction], gt: &[[f64; 4]]) -> image::RgbImage {
     let rgb: Vec<u8> = f.bgr().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
     let mut img = image::RgbImage::from_raw(f.width() as u32, f.height() as u32, rgb).expect("frame size");
-    if let Some(g) = gt.filter(|g| g.iter().all(|v| v.is_finite())) {
-        draw_rect(&mut img, g, [255, 40, 40]);
+    for g in gt.iter().filter(|g| g.iter().all(|v| v.is_finite())) {
+        draw_rect(&mut img, *g, [255, 40, 40]);
     }
     for p in preds {
         draw_rect(&mut img, [p.bbox.x, p.bbox.y, p.bbox.w, p.bbox.h], [40, 255, 40]);
@@ -284,7 +285,7 @@ fn with_boxes(f: &Frame, preds: &[Prediction], gt: Option<[f64; 4]>) -> image::R
 }
 
 /// Draw `preds` (green) and `gt` (red) on a copy of the frame and save it as JPEG.
-pub fn save_vis(dir: &Path, i: usize, f: &Frame, preds: &[Prediction], gt: Option<[f64; 4]>) -> anyhow::Result<()> {
+pub fn save_vis(dir: &Path, i: usize, f: &Frame, preds: &[Prediction], gt: &[[f64; 4]]) -> anyhow::Result<()> {
     let path = dir.join(format!("{:06}.jpg", i + 1));
     with_boxes(f, preds, gt).save(&path).with_context(|| format!("{}: cannot write", path.display()))
 }
@@ -312,24 +313,33 @@ fn draw_rect(img: &mut image::RgbImage, b: [f64; 4], color: [u8; 3]) {
 
 pub fn run(a: TrackArgs) -> anyhow::Result<()> {
     let given = given_boxes(&a)?;
-    let (jobs, per_job) = spread_threads(a.threads, given.len().max(1));
     if let Some(src) = &a.video {
         anyhow::ensure!(!given.is_empty(), "--video needs --init x,y,w,h or --targets FILE");
+        let (jobs, per_job) = spread_threads(a.threads, given.len());
         return run_video(&a, src, &given, jobs, per_job);
     }
-    let (mut frames, gt, inits) = match (&a.sequence, &a.frames) {
+    // Each target's ground truth, where the sequence has it (one file per target).
+    let (mut frames, gt, inits): (_, Vec<Vec<[f64; 4]>>, _) = match (&a.sequence, &a.frames) {
         (Some(dir), _) => {
             let seq = Sequence::open(dir)?;
-            let inits = match (given.is_empty(), &seq.groundtruth) {
-                (false, _) => given,
-                (true, Some(gt)) => vec![(init_box_from_groundtruth(gt[0]), first_box_as_written(dir, gt[0]))],
-                (true, None) => return Err(InputError::new(dir, "no groundtruth_rect.txt: give --init x,y,w,h").into()),
+            let inits = if !given.is_empty() {
+                given
+            } else if seq.targets.is_empty() {
+                let msg = "no ground truth (groundtruth_rect.txt, or groundtruth_rect.<N>.txt per target): give --init x,y,w,h";
+                return Err(InputError::new(dir, msg).into());
+            } else {
+                let first = |t: &prl_track::GroundTruth| t.boxes[0];
+                seq.targets
+                    .iter()
+                    .map(|t| (init_box_from_groundtruth(first(t)), first_box_as_written(&t.file, first(t))))
+                    .collect()
             };
-            (seq.frames, seq.groundtruth, inits)
+            (seq.frames, seq.targets.into_iter().map(|t| t.boxes).collect(), inits)
         }
-        (None, Some(dir)) if !given.is_empty() => (Sequence::list_frames(dir)?, None, given),
+        (None, Some(dir)) if !given.is_empty() => (Sequence::list_frames(dir)?, vec![], given),
         _ => anyhow::bail!("give --sequence DIR, or --frames DIR with --init x,y,w,h (or --targets FILE)"),
     };
+    let (jobs, per_job) = spread_threads(a.threads, inits.len());
     if let Some(n) = a.max_frames {
         frames.truncate(n.max(1));
     }
@@ -348,7 +358,7 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
             ps.iter().enumerate().for_each(|(k, p)| println!("{}", frame_json(i, None, several.then_some(k + 1), p)));
         }
         match &a.vis {
-            Some(dir) => save_vis(dir, i, f, ps, gt.as_ref().and_then(|g| g.get(i).copied())),
+            Some(dir) => save_vis(dir, i, f, ps, &gt.iter().filter_map(|g| g.get(i).copied()).collect::<Vec<_>>()),
             None => Ok(()),
         }
     })
@@ -360,20 +370,21 @@ pub fn run(a: TrackArgs) -> anyhow::Result<()> {
             say(format!("results: {} (confidences in {})", path.display(), longterm::confidence_path(&path).display()));
         }
     }
-    let summary = Summary::of(&runs[0], gt.as_deref());
+    let summary = Summary::of(&runs[0], gt.first().map(|g| g.as_slice()));
     if let Some(path) = &a.json {
         write_atomically(path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     }
     let mut lines = summary.lines();
     if several {
-        lines.insert(1, targets_line(&runs, jobs));
+        lines.insert(1, targets_line(&runs, jobs, &gt));
     }
     lines.into_iter().for_each(say);
     Ok(())
 }
 
-/// With several targets: how many, on how many threads, and each one's frames lost.
-fn targets_line(runs: &[TrackRun], jobs: usize) -> String {
+/// With several targets: how many, on how many threads, each one's frames lost and, when every
+/// target has its ground truth in `gt`, each one's mean IoU.
+fn targets_line(runs: &[TrackRun], jobs: usize, gt: &[Vec<[f64; 4]>]) -> String {
     let lost: Vec<String> = runs
         .iter()
         .enumerate()
@@ -381,11 +392,21 @@ fn targets_line(runs: &[TrackRun], jobs: usize) -> String {
             format!("{}: {}", k + 1, r.states.iter().filter(|&&s| s == prl_runtime::TargetState::Lost).count())
         })
         .collect();
-    format!(
+    let mut line = format!(
         "targets: {} on {jobs} thread(s) (stage times below are target 1's); frames lost per target: {}",
         runs.len(),
         lost.join(", ")
-    )
+    );
+    if gt.len() == runs.len() {
+        let ious: Vec<String> = runs
+            .iter()
+            .zip(gt)
+            .enumerate()
+            .map(|(k, (r, g))| format!("{}: {}", k + 1, r.mean_iou(g).map_or("-".into(), |v| format!("{v:.3}"))))
+            .collect();
+        line += &format!("; mean IoU per target: {}", ious.join(", "));
+    }
+    line
 }
 
 /// One frame's `--jsonl` object: frame number, target (when there are several), time (video),
@@ -472,10 +493,10 @@ fn run_video(a: &TrackArgs, src: &str, given: &[(BBox, String)], jobs: usize, pe
                 .for_each(|(k, p)| println!("{}", frame_json(index, Some(time), several.then_some(k + 1), p)));
         }
         if let Some(wr) = writer.as_mut() {
-            wr.write(Frame::from_rgb_image(&with_boxes(f, ps, None)).bgr()).map_err(|e| e.to_string())?;
+            wr.write(Frame::from_rgb_image(&with_boxes(f, ps, &[])).bgr()).map_err(|e| e.to_string())?;
         }
         match &a.vis {
-            Some(dir) => save_vis(dir, index, f, ps, None).map_err(|e| format!("{e:#}")),
+            Some(dir) => save_vis(dir, index, f, ps, &[]).map_err(|e| format!("{e:#}")),
             None => Ok(()),
         }
     })
@@ -510,7 +531,7 @@ fn run_video(a: &TrackArgs, src: &str, given: &[(BBox, String)], jobs: usize, pe
         write_atomically(path, serde_json::to_string_pretty(&summary)?.as_bytes())?;
     }
     if several {
-        say(targets_line(&runs, jobs));
+        say(targets_line(&runs, jobs, &[]));
     }
     say(format!(
         "frames: {} tracked, {} dropped   FPS: {:.1}   ms per frame (median): frame wait {:.1}, crop {:.1}, network {:.1}",
