@@ -1,7 +1,8 @@
 //! `prl track --video`: a video FFmpeg encodes losslessly from a sequence's decoded frames gives
 //! exactly the boxes the frame folder gives; live pacing drops frames when the tracker is slower
-//! than the source and says how many; a missing file is a one-line error. Needs the `ffmpeg`
-//! and `ffprobe` programs (`.ci/run` installs them); without them these tests say so and pass.
+//! than the source and says how many; a UDP stream tracks live until Ctrl-C, which writes the
+//! results; a missing file is a one-line error. Needs the `ffmpeg` and `ffprobe` programs
+//! (`.ci/run` installs them); without them these tests say so and pass.
 
 mod common;
 
@@ -217,4 +218,74 @@ fn a_stream_that_breaks_or_a_file_cut_short() {
     assert!(part.len() > 10 && part.len() < n, "{} frames of the cut file", part.len());
     let boxes = |l: &&str| serde_json::from_str::<serde_json::Value>(l).unwrap()["box"].clone();
     assert!(part.iter().zip(&whole).all(|(a, b)| boxes(a) == boxes(b)), "the frames before the cut track alike");
+}
+
+/// A network stream (MPEG-TS over UDP on loopback, as drone links send it: the size comes only
+/// with the stream's own headers, and UDP has no end): tracked live from the one connection
+/// `prl` opens, until Ctrl-C, which ends the run cleanly with every tracked frame's result
+/// written.
+#[test]
+fn a_udp_stream_tracks_live_until_ctrl_c() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = common::nanotrack_plan(tmp.path());
+    let video = tmp.path().join("src.mkv");
+    let (w, h) = (320, 240);
+    encode(&video, w, h, stripes(w, h, 50));
+    let port = std::net::UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let url = format!("udp://127.0.0.1:{port}");
+    // The sender: the file looped at its own pace (10 fps), MPEG-2 with headers on every GOP.
+    let mut sender = Command::new("ffmpeg")
+        .args(["-hide_banner", "-loglevel", "error", "-re", "-stream_loop", "-1", "-i"])
+        .arg(&video)
+        .args(["-c:v", "mpeg2video", "-g", "5", "-q:v", "2", "-f", "mpegts"])
+        .arg(format!("{url}?pkt_size=1316"))
+        .stdin(Stdio::null())
+        .spawn()
+        .unwrap();
+    let results = tmp.path().join("stream.txt");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_prl"))
+        .args(["track", "--plan", &s(&plan), "--video", &url, "--init", "100,80,60,50", "--live", "--jsonl"])
+        .args(["--threads", "1", "--results", &s(&results)])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // A watchdog: a stream that never arrives fails the test rather than hanging it.
+    let pid = child.id() as i32;
+    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let watched = std::sync::Arc::clone(&done);
+    std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_secs(90));
+        if !watched.load(std::sync::atomic::Ordering::SeqCst) {
+            // SAFETY: kill(2) on the child's pid, which `wait` below has not reaped yet.
+            unsafe { libc::kill(pid, libc::SIGKILL) };
+        }
+    });
+    let mut lines = std::io::BufRead::lines(std::io::BufReader::new(child.stdout.take().unwrap()));
+    let mut objs = vec![];
+    for _ in 0..8 {
+        let line = lines.next().expect("a frame from the stream within 90 s").unwrap();
+        objs.push(serde_json::from_str::<serde_json::Value>(&line).unwrap());
+    }
+    // SAFETY: kill(2) on our running child's pid: Ctrl-C.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
+    objs.extend(lines.map(|l| serde_json::from_str::<serde_json::Value>(&l.unwrap()).unwrap()));
+    let o = child.wait_with_output().unwrap();
+    done.store(true, std::sync::atomic::Ordering::SeqCst);
+    let _ = sender.kill();
+    let _ = sender.wait();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("video: udp://127.0.0.1") && err.contains(&format!("{w}x{h}")), "{err}");
+    assert!(err.contains("stopped on request"), "{err}");
+    // Every frame tracked is in the results, with its frame number, increasing.
+    let text = std::fs::read_to_string(&results).unwrap();
+    let numbers: Vec<u64> = text.lines().map(|l| l.split(',').next().unwrap().parse().unwrap()).collect();
+    let tracked: Vec<u64> = objs.iter().map(|o| o["frame"].as_u64().unwrap()).collect();
+    assert_eq!(numbers, tracked);
+    assert!(tracked.len() >= 8 && tracked.windows(2).all(|p| p[0] < p[1]), "{tracked:?}");
 }

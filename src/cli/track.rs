@@ -472,6 +472,19 @@ fn run_video(a: &TrackArgs, src: &str, given: &[(BBox, String)], jobs: usize, pe
     let mut video = VideoSource::open(src, if a.live { Pacing::Live } else { Pacing::Every }, a.init_frame)?;
     let (w, h) = video.size();
     say(format!("video: {src}, {w}x{h}, {}", if a.live { "live (newest frame)" } else { "every frame" }));
+    // Ctrl-C (or SIGTERM) ends the run at the next frame with its results written: a camera or
+    // a stream has no end of its own. A second Ctrl-C quits at once.
+    let stop = video.stop_flag();
+    let on_signal = std::sync::Arc::clone(&stop);
+    let handler = ctrlc::set_handler(move || {
+        if on_signal.swap(true, std::sync::atomic::Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("stopping at the next frame, results written (Ctrl-C again: quit at once)");
+    });
+    if let Err(e) = handler {
+        eprintln!("note: Ctrl-C will not end this run cleanly: {e}");
+    }
     if let Some(dir) = &a.vis {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
@@ -542,6 +555,9 @@ fn run_video(a: &TrackArgs, src: &str, given: &[(BBox, String)], jobs: usize, pe
         summary.crop_ms,
         summary.network_ms
     ));
+    if stop.load(std::sync::atomic::Ordering::SeqCst) {
+        say("stopped on request (Ctrl-C or SIGTERM): the results cover the frames tracked until then".into());
+    }
     Ok(())
 }
 
