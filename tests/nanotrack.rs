@@ -254,6 +254,23 @@ fn import_errors_name_the_file_and_the_problem() {
     std::fs::write(&nan, &bytes).unwrap();
     let e = import_err(&nan, &head, None);
     assert!(e.starts_with(&nan.display().to_string()) && e.contains("NaN values"), "{e}");
+    // A convolution of stride 0 (fuzzing found tract dividing by zero in its shape inference, a
+    // panic): one line on standard error, exit 1, nothing written, no panic message.
+    let stride0 = tmp.path().join("stride0.onnx");
+    let mut bytes = std::fs::read(&backbone).unwrap();
+    let at = bytes.windows(7).position(|w| w == b"strides").unwrap() + 7;
+    let ints = bytes[at..at + 16].windows(4).position(|w| w == [0x40, 2, 0x40, 2]).expect("strides 2, 2") + at;
+    bytes[ints + 1] = 0;
+    bytes[ints + 3] = 0;
+    std::fs::write(&stride0, &bytes).unwrap();
+    let e = import_err(&stride0, &head, None);
+    assert!(e.starts_with(&stride0.display().to_string()) && e.contains("malformed"), "{e}");
+    let out = tmp.path().join("stride0-model");
+    let (b, h, o) = (stride0.to_str().unwrap(), head.to_str().unwrap(), out.to_str().unwrap());
+    let run = common::prl(&["import", "nanotrack", "--backbone", b, "--head", h, "--out", o]);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{err}");
+    assert!(err.trim().lines().count() == 1 && !err.contains("panicked") && !out.exists(), "{err}");
     // Not a file at all.
     let e = import_err(&tmp.path().join("absent.onnx"), &head, None);
     assert!(e.contains("absent.onnx"), "{e}");

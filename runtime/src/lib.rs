@@ -31,6 +31,7 @@ mod nnef;
 mod ops;
 mod plan;
 mod quantization;
+mod quiet;
 mod recording;
 mod resize;
 mod tracker;
@@ -53,6 +54,7 @@ pub use ops::{
 };
 pub use plan::{set_threads, spread, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures, Threads};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
+pub use quiet::catch_quietly;
 pub use recording::{record, replay, TensorMatch, RECORDING_INDEX};
 pub use resize::{resize_linear_u8, resize_linear_u8_rows};
 pub use tracker::{confidence, BBox, Prediction, StepTimings, TargetState, Tracker};

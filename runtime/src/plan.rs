@@ -316,7 +316,7 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
     let (digest, model) = std::thread::scope(|s| {
         let digest = s.spawn(|| Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect::<String>());
         let parse = || nnef().model_for_read(&mut &*bytes);
-        let model = std::panic::catch_unwind(std::panic::AssertUnwindSafe(parse));
+        let model = crate::catch_quietly(parse);
         (digest.join().expect("hashing does not panic"), model)
     });
     if digest != info.sha256 {
@@ -364,7 +364,7 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             TypedSimplePlan::new(model)
         })
     };
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(optimise))
+    crate::catch_quietly(optimise)
         .map_err(|_| bad("tract cannot optimise it: the graph is malformed".into()))?
         .map_err(tract_err)
 }
