@@ -325,7 +325,7 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             info.sha256
         )));
     }
-    let model = model.map_err(|_| bad("tract-nnef cannot read it: the graph is malformed".into()))?;
+    let model = model.ok_or_else(|| bad("tract-nnef cannot read it: the graph is malformed".into()))?;
     let model = model.map_err(tract_err)?;
     if model.inputs.len() != info.inputs.len() || model.outputs.len() != info.outputs.len() {
         return Err(bad(format!(
@@ -365,6 +365,6 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
         })
     };
     crate::catch_quietly(optimise)
-        .map_err(|_| bad("tract cannot optimise it: the graph is malformed".into()))?
+        .ok_or_else(|| bad("tract cannot optimise it: the graph is malformed".into()))?
         .map_err(tract_err)
 }

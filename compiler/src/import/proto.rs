@@ -244,7 +244,7 @@ impl Onnx {
             tract_onnx::onnx().model_for_proto_model(&self.model).and_then(|m| m.into_typed())
         });
         let model =
-            typed.map_err(|_| graph_err(file, format!("tract cannot read it {what}: its graph is malformed")))?;
+            typed.ok_or_else(|| graph_err(file, format!("tract cannot read it {what}: its graph is malformed")))?;
         let model = model.map_err(err)?;
         model
             .output_outlets()
