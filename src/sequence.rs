@@ -116,7 +116,7 @@ impl Sequence {
             return Ok(vec![(p, None)]);
         }
         let entries = std::fs::read_dir(dir).map_err(|e| InputError::new(dir, format!("cannot list: {e}")))?;
-        let mut numbered: Vec<(PathBuf, Option<u32>)> = vec![];
+        let mut numbered: Vec<(u32, PathBuf)> = vec![];
         for path in entries.filter_map(|e| e.ok().map(|e| e.path())) {
             let number = path
                 .file_name()
@@ -129,17 +129,14 @@ impl Sequence {
                         format!("more than {MAX_GROUNDTRUTH_FILES} groundtruth_rect.<N>.txt files (one per target)"),
                     ));
                 }
-                numbered.push((path, Some(n)));
+                numbered.push((n, path));
             }
         }
-        numbered.sort_by_key(|(_, n)| *n);
-        if let Some(w) = numbered.windows(2).find(|w| w[0].1 == w[1].1) {
-            return Err(InputError::new(
-                &w[1].0,
-                format!("a second ground-truth file of target {}", w[1].1.unwrap_or(0)),
-            ));
+        numbered.sort_by_key(|(n, _)| *n);
+        if let Some(w) = numbered.windows(2).find(|w| w[0].0 == w[1].0) {
+            return Err(InputError::new(&w[1].1, format!("a second ground-truth file of target {}", w[1].0)));
         }
-        Ok(numbered)
+        Ok(numbered.into_iter().map(|(n, path)| (path, Some(n))).collect())
     }
 
     /// The image files of a folder, sorted by name.

@@ -386,7 +386,9 @@ fn read_frame(pipe: &mut impl Read, size: Option<(usize, usize)>) -> Result<Opti
     if !(BMP_HEADER..=BMP_HEADER + 1024).contains(&offset) {
         return Err(bad(format!("pixels at byte {offset}")));
     }
-    let mut skip = vec![0u8; offset - BMP_HEADER + 3];
+    // The bytes between the header and the pixels (checked above: at most 1024), then each
+    // row's padding (at most 3).
+    let mut skip = [0u8; 1024];
     fill(pipe, &mut skip[..offset - BMP_HEADER], false)?;
     let row = width * 3;
     let pad = row.next_multiple_of(4) - row;
