@@ -166,11 +166,9 @@ fn several_targets_give_each_the_boxes_of_a_single_target_run() {
     assert!(e.contains("(target 2)") && e.contains("outside"), "{e}");
 }
 
-#[test]
-fn a_malformed_graph_archive_is_an_error_not_a_panic() {
-    // Fuzzing found tract-nnef panicking (an out-of-range slice) on a reshape whose axis_start
-    // lies past the input's rank. Such an archive, with a manifest whose digest matches it:
-    // `Plan::load` returns a one-line error naming the file.
+/// A NanoTrack plan whose search graph's `graph.nnef` is `edit`ed, with a manifest whose digest
+/// matches it (as a crafted plan would carry); `Plan::load`'s one-line error naming the file.
+fn load_with_edited_graph(edit: impl Fn(&str) -> String) -> String {
     use sha2::{Digest, Sha256};
     let tmp = tempfile::tempdir().unwrap();
     let dir = common::nanotrack_plan(tmp.path());
@@ -179,23 +177,21 @@ fn a_malformed_graph_archive_is_an_error_not_a_panic() {
     let search = dir.join(manifest["search"]["file"].as_str().unwrap());
     let mut archive = tar::Archive::new(std::fs::File::open(&search).unwrap());
     let mut out = tar::Builder::new(Vec::new());
-    let mut broken = false;
+    let mut edited = false;
     for entry in archive.entries().unwrap() {
         let mut entry = entry.unwrap();
         let mut bytes = vec![];
         std::io::Read::read_to_end(&mut entry, &mut bytes).unwrap();
         let mut header = entry.header().clone();
         if entry.path().unwrap().to_str() == Some("graph.nnef") {
-            let text = String::from_utf8(bytes).unwrap();
-            let at = text.find("axis_start = 2").expect("a reshape in the search graph");
-            bytes = format!("{}axis_start = 9{}", &text[..at], &text[at + 14..]).into_bytes();
+            bytes = edit(&String::from_utf8(bytes).unwrap()).into_bytes();
             header.set_size(bytes.len() as u64);
             header.set_cksum();
-            broken = true;
+            edited = true;
         }
         out.append(&header, &bytes[..]).unwrap();
     }
-    assert!(broken);
+    assert!(edited);
     let bytes = out.into_inner().unwrap();
     std::fs::write(&search, &bytes).unwrap();
     let digest: String = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
@@ -203,6 +199,31 @@ fn a_malformed_graph_archive_is_an_error_not_a_panic() {
     std::fs::write(&manifest_path, serde_json::to_vec(&manifest).unwrap()).unwrap();
     let e = Plan::load(&dir).err().expect("refused").to_string();
     assert!(!e.contains('\n') && e.contains(&search.display().to_string()), "{e}");
+    e
+}
+
+#[test]
+fn a_malformed_graph_archive_is_an_error_not_a_panic() {
+    // Fuzzing found tract-nnef panicking (an out-of-range slice) on a reshape whose axis_start
+    // lies past the input's rank.
+    load_with_edited_graph(|text| {
+        let at = text.find("axis_start = 2").expect("a reshape in the search graph");
+        format!("{}axis_start = 9{}", &text[..at], &text[at + 14..])
+    });
+}
+
+#[test]
+fn a_graph_nested_too_deep_to_parse_is_refused_before_parsing() {
+    // Fuzzing found a plan on which tract-nnef's parser ran for ever: its work doubles with
+    // each level of nesting, and the graph had a hundred open brackets. Closed or left open,
+    // brackets or signs: refused at once, before tract-nnef sees it.
+    for deep in ["[".repeat(100), format!("{}1.0{}", "[".repeat(100), "]".repeat(100)), "- ".repeat(100)] {
+        let e = load_with_edited_graph(|text| {
+            let at = text.find("= external").expect("an input");
+            format!("{}= {deep}{}", &text[..at], &text[at + 1..])
+        });
+        assert!(e.contains("levels deep"), "{e}");
+    }
 }
 
 fn import_err(backbone: &Path, head: &Path, config: Option<&Path>) -> String {

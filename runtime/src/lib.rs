@@ -18,6 +18,7 @@
 //! # Ok(()) }
 //! ```
 
+mod archive;
 mod atomic;
 mod config;
 mod crop;
@@ -36,6 +37,7 @@ mod recording;
 mod resize;
 mod tracker;
 
+pub use archive::{check_graph_archive, parse_work};
 pub use atomic::{commit, temporary_path, write_atomically, write_files_atomically};
 pub use config::{Family, LongTermConfig, StateSignal, TrackerConfig};
 pub use crop::{crop_to_tensor, get_subwindow};
