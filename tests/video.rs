@@ -1,8 +1,10 @@
 //! `prl track --video`: a video FFmpeg encodes losslessly from a sequence's decoded frames gives
 //! exactly the boxes the frame folder gives; live pacing drops frames when the tracker is slower
 //! than the source and says how many; a UDP stream tracks live until Ctrl-C, which writes the
-//! results; a missing file is a one-line error. Needs the `ffmpeg` and `ffprobe` programs
-//! (`.ci/run` installs them); without them these tests say so and pass.
+//! results; an RTSP camera (GStreamer's RTSP server, `scripts/rtsp-server.py`) tracks live until
+//! its stream ends; a missing file is a one-line error. Needs the `ffmpeg` and `ffprobe`
+//! programs, and for RTSP the server's packages (`.ci/run` installs them all); without them
+//! these tests say so and pass.
 
 mod common;
 
@@ -288,4 +290,96 @@ fn a_udp_stream_tracks_live_until_ctrl_c() {
     let tracked: Vec<u64> = objs.iter().map(|o| o["frame"].as_u64().unwrap()).collect();
     assert_eq!(numbers, tracked);
     assert!(tracked.len() >= 8 && tracked.windows(2).all(|p| p[0] < p[1]), "{tracked:?}");
+}
+
+/// A Python that has GStreamer's RTSP server (`scripts/rtsp-server.py`): the system's first, as
+/// its packages install there (a pyenv or venv `python3` may come first on the PATH).
+fn rtsp_server_python() -> Option<&'static str> {
+    let check = "import gi; gi.require_version('GstRtspServer', '1.0'); from gi.repository import GstRtspServer";
+    let found = ["/usr/bin/python3", "python3"]
+        .into_iter()
+        .find(|py| Command::new(py).args(["-c", check]).stderr(Stdio::null()).status().is_ok_and(|s| s.success()));
+    if found.is_none() {
+        eprintln!(
+            "NOTE: GStreamer's RTSP server not found: the RTSP test is NOT run here (sudo apt-get install \
+             python3-gi gir1.2-gst-rtsp-server-1.0 gstreamer1.0-plugins-good gstreamer1.0-plugins-bad)"
+        );
+    }
+    found
+}
+
+/// An RTSP camera, as a drone link delivers one: building4's first 40 frames as H.264 served in
+/// real time by GStreamer's RTSP server. `prl track --live` tracks it from the first frame it
+/// gets until the stream ends, which ends the run cleanly with the results written, and stays
+/// on the target.
+#[test]
+fn an_rtsp_camera_tracks_live_until_its_stream_ends() {
+    if !have_ffmpeg() {
+        return;
+    }
+    let Some(python) = rtsp_server_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let plan = common::nanotrack_plan(tmp.path());
+    let seq = common::sequence("building4");
+    let video = tmp.path().join("building4.mp4");
+    let encoded = Command::new("ffmpeg")
+        .args(["-hide_banner", "-loglevel", "error", "-framerate", "10", "-i"])
+        .arg(seq.join("img/%06d.jpg"))
+        .args(["-frames:v", "40", "-c:v", "libx264", "-preset", "ultrafast", "-g", "10", "-pix_fmt", "yuv420p"])
+        .arg(&video)
+        .status()
+        .unwrap();
+    assert!(encoded.success());
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/rtsp-server.py");
+    let mut server =
+        Command::new(python).arg(&script).arg(&video).arg(port.to_string()).stdout(Stdio::piped()).spawn().unwrap();
+    let mut said = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(server.stdout.take().unwrap()), &mut said).unwrap();
+    let url = format!("rtsp://127.0.0.1:{port}/cam");
+    assert_eq!(said.trim(), format!("serving {url}"));
+    let gt = prl_track::parse_boxes(&seq.join("groundtruth_rect.txt"), 10_000).unwrap();
+    let init = gt[0].map(|v| v.to_string()).join(",");
+    let results = tmp.path().join("camera.txt");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let child = Command::new(env!("CARGO_BIN_EXE_prl"))
+        .args(["track", "--plan", &s(&plan), "--video", &url, "--init", &init, "--live", "--jsonl"])
+        .args(["--threads", "1", "--results", &s(&results)])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // A watchdog: a stream that never ends fails the test rather than hanging it.
+    let pid = child.id() as i32;
+    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let watched = std::sync::Arc::clone(&done);
+    std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_secs(90));
+        if !watched.load(std::sync::atomic::Ordering::SeqCst) {
+            // SAFETY: kill(2) on the child's pid, which `wait_with_output` has not reaped yet.
+            unsafe { libc::kill(pid, libc::SIGKILL) };
+        }
+    });
+    let o = child.wait_with_output().unwrap();
+    done.store(true, std::sync::atomic::Ordering::SeqCst);
+    let _ = server.kill();
+    let _ = server.wait();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains(&format!("video: {url}, 1280x720, live")), "{err}");
+    let objs: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let frames: Vec<usize> = objs.iter().map(|o| o["frame"].as_u64().unwrap() as usize).collect();
+    // Live: frames may be dropped, never reordered; the first is the init frame.
+    assert!(frames.len() >= 5 && frames[0] == 0 && frames.windows(2).all(|p| p[0] < p[1]), "{frames:?}");
+    assert!(*frames.last().unwrap() < 40, "{frames:?}");
+    let text = std::fs::read_to_string(&results).unwrap();
+    assert_eq!(text.lines().count(), frames.len());
+    // On the target: H.264 at its defaults and dropped frames, and still over the ground truth.
+    let boxes = objs.iter().map(|o| {
+        let b: Vec<f64> = o["box"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+        [b[0], b[1], b[2], b[3]]
+    });
+    let mean = boxes.zip(&frames).map(|(b, &f)| prl_track::iou(b, gt[f])).sum::<f64>() / frames.len() as f64;
+    assert!(mean > 0.5, "mean IoU {mean} over frames {frames:?}");
 }
