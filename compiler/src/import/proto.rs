@@ -178,10 +178,24 @@ impl Onnx {
         }
     }
 
-    /// Rename a value everywhere it appears.
+    /// Whether any node, graph input, output or initializer names `name`.
+    fn names_value(&self, name: &str) -> bool {
+        let g = self.graph();
+        g.node.iter().flat_map(|n| n.input.iter().chain(&n.output)).any(|s| s == name)
+            || g.input.iter().chain(&g.output).chain(&g.value_info).any(|v| v.name == name)
+            || g.initializer.iter().any(|t| t.name == name)
+    }
+
+    /// Rename a value everywhere it appears. A value the model already calls `new` is renamed
+    /// out of the way first (fuzzing found a backbone with a weight named `z`, which the input
+    /// renamed `z` then became).
     fn rename_value(&mut self, old: &str, new: &str) {
         if old == new {
             return;
+        }
+        if self.names_value(new) {
+            let free = (1..).map(|k| format!("{new}_{k}")).find(|n| !self.names_value(n)).expect("a free name");
+            self.rename_value(new, &free);
         }
         let g = self.graph_mut();
         let swap = |s: &mut String| {
@@ -407,4 +421,30 @@ pub(crate) fn join(
         ..Default::default()
     };
     Ok(Onnx { path: head.path.clone(), model })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::onnx::Graph;
+    use crate::Tensor;
+
+    #[test]
+    fn renaming_to_a_name_the_model_uses_moves_that_value_out_of_the_way() {
+        // Fuzzing found a backbone whose weight is named `z`, the name the template graph's
+        // input takes: the renamed input was taken for the weight and no input was left.
+        let mut g = Graph::new("tiny");
+        let x = g.input("input", &[1, 3, 8, 8]).unwrap();
+        let w = g.constant("z", &Tensor::new([2, 3, 1, 1], vec![1.0; 6])).unwrap();
+        let y = g.node("Conv", "conv", &[&x, &w], &[]).unwrap();
+        g.output(&y, &[1, 2, 8, 8]).unwrap();
+        let file = super::super::OnnxFile { path: "tiny.onnx".into(), bytes: g.encode("test") };
+        let mut m = Onnx::decode(&file).unwrap();
+        m.rename_io("z", &["zf"]);
+        m.set_input_shape(0, &[1, 3, 4, 4]);
+        assert_eq!(m.input(0).name, "z");
+        assert_eq!(m.graph().initializer[0].name, "z_1");
+        assert_eq!(m.graph().node[0].input, ["z", "z_1"]);
+        assert_eq!(m.infer_output_shapes(Path::new("tiny.onnx"), "").unwrap(), [vec![1, 2, 4, 4]]);
+    }
 }
