@@ -66,6 +66,13 @@ impl Onnx {
         if let Some(n) = g.node.iter().find(|n| n.attribute.iter().any(|a| a.g.is_some() || !a.graphs.is_empty())) {
             return Err(graph_err(&path, format!("node `{}` ({}) holds a subgraph; not supported", n.name, n.op_type)));
         }
+        // A graph's inputs, outputs and initializers have names (an empty name is an absent
+        // optional value to a node; fuzzing found an importer panicking on an unnamed input).
+        let named = g.input.iter().map(|v| ("input", &v.name)).chain(g.output.iter().map(|v| ("output", &v.name)));
+        let named = named.chain(g.initializer.iter().map(|t| ("initializer", &t.name)));
+        if let Some((what, _)) = named.into_iter().find(|(_, n)| n.is_empty()) {
+            return Err(graph_err(&path, format!("a graph {what} has an empty name")));
+        }
         // Every value has one name and one maker: graph inputs, initializers and node outputs
         // are distinct (an input listed twice, or a value two nodes make, cannot be renamed or
         // wired unambiguously), and so are the graph's outputs. An initializer may also be
@@ -446,5 +453,19 @@ mod tests {
         assert_eq!(m.graph().initializer[0].name, "z_1");
         assert_eq!(m.graph().node[0].input, ["z", "z_1"]);
         assert_eq!(m.infer_output_shapes(Path::new("tiny.onnx"), "").unwrap(), [vec![1, 2, 4, 4]]);
+    }
+
+    #[test]
+    fn an_unnamed_graph_input_is_refused() {
+        // Fuzzing found the join of backbone and head panicking on a head input named "".
+        let mut g = Graph::new("tiny");
+        let x = g.input("input", &[1, 3, 8, 8]).unwrap();
+        let y = g.node("Relu", "relu", &[&x], &[]).unwrap();
+        g.output(&y, &[1, 3, 8, 8]).unwrap();
+        let mut model = g.to_model("test");
+        model.graph.as_mut().unwrap().input[0].name.clear();
+        let file = super::super::OnnxFile { path: "unnamed.onnx".into(), bytes: model.encode_to_vec() };
+        let e = Onnx::decode(&file).err().expect("refused").to_string();
+        assert_eq!(e, "unnamed.onnx: a graph input has an empty name");
     }
 }
