@@ -248,25 +248,8 @@ fn a_udp_stream_tracks_live_until_ctrl_c() {
         .spawn()
         .unwrap();
     let results = tmp.path().join("stream.txt");
-    let s = |p: &Path| p.to_str().unwrap().to_string();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_prl"))
-        .args(["track", "--plan", &s(&plan), "--video", &url, "--init", "100,80,60,50", "--live", "--jsonl"])
-        .args(["--threads", "1", "--results", &s(&results)])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    // A watchdog: a stream that never arrives fails the test rather than hanging it.
+    let (mut child, watchdog) = track_live(&plan, &url, "100,80,60,50", &results);
     let pid = child.id() as i32;
-    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let watched = std::sync::Arc::clone(&done);
-    std::thread::spawn(move || {
-        std::thread::sleep(std::time::Duration::from_secs(90));
-        if !watched.load(std::sync::atomic::Ordering::SeqCst) {
-            // SAFETY: kill(2) on the child's pid, which `wait` below has not reaped yet.
-            unsafe { libc::kill(pid, libc::SIGKILL) };
-        }
-    });
     let mut lines = std::io::BufRead::lines(std::io::BufReader::new(child.stdout.take().unwrap()));
     let mut objs = vec![];
     for _ in 0..8 {
@@ -277,7 +260,7 @@ fn a_udp_stream_tracks_live_until_ctrl_c() {
     assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
     objs.extend(lines.map(|l| serde_json::from_str::<serde_json::Value>(&l.unwrap()).unwrap()));
     let o = child.wait_with_output().unwrap();
-    done.store(true, std::sync::atomic::Ordering::SeqCst);
+    watchdog.disarm();
     let _ = sender.kill();
     let _ = sender.wait();
     let err = String::from_utf8_lossy(&o.stderr);
@@ -290,6 +273,42 @@ fn a_udp_stream_tracks_live_until_ctrl_c() {
     let tracked: Vec<u64> = objs.iter().map(|o| o["frame"].as_u64().unwrap()).collect();
     assert_eq!(numbers, tracked);
     assert!(tracked.len() >= 8 && tracked.windows(2).all(|p| p[0] < p[1]), "{tracked:?}");
+}
+
+/// The watchdog of [`track_live`]; disarm it once the child is reaped (a test that fails before
+/// leaves it armed, and the child is killed).
+struct Watchdog(std::sync::Arc<std::sync::atomic::AtomicBool>);
+
+impl Watchdog {
+    fn disarm(self) {
+        self.0.store(true, std::sync::atomic::Ordering::SeqCst);
+    }
+}
+
+/// `prl track --live --jsonl` on one thread from `url`, starting at `init`, results to `results`;
+/// killed if it still runs after 90 s, so that a stream that never arrives or never ends fails
+/// the test rather than hanging it.
+fn track_live(plan: &Path, url: &str, init: &str, results: &Path) -> (std::process::Child, Watchdog) {
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let child = Command::new(env!("CARGO_BIN_EXE_prl"))
+        .args(["track", "--plan", &s(plan), "--video", url, "--init", init, "--live", "--jsonl"])
+        .args(["--threads", "1", "--results", &s(results)])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id() as i32;
+    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let watched = std::sync::Arc::clone(&done);
+    std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_secs(90));
+        if !watched.load(std::sync::atomic::Ordering::SeqCst) {
+            // SAFETY: kill(2) on the child's pid, not reaped yet: the caller disarms the
+            // watchdog only after waiting for the child.
+            unsafe { libc::kill(pid, libc::SIGKILL) };
+        }
+    });
+    (child, Watchdog(done))
 }
 
 /// A Python that has GStreamer's RTSP server (`scripts/rtsp-server.py`): the system's first, as
@@ -341,27 +360,9 @@ fn an_rtsp_camera_tracks_live_until_its_stream_ends() {
     let gt = prl_track::parse_boxes(&seq.join("groundtruth_rect.txt"), 10_000).unwrap();
     let init = gt[0].map(|v| v.to_string()).join(",");
     let results = tmp.path().join("camera.txt");
-    let s = |p: &Path| p.to_str().unwrap().to_string();
-    let child = Command::new(env!("CARGO_BIN_EXE_prl"))
-        .args(["track", "--plan", &s(&plan), "--video", &url, "--init", &init, "--live", "--jsonl"])
-        .args(["--threads", "1", "--results", &s(&results)])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    // A watchdog: a stream that never ends fails the test rather than hanging it.
-    let pid = child.id() as i32;
-    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let watched = std::sync::Arc::clone(&done);
-    std::thread::spawn(move || {
-        std::thread::sleep(std::time::Duration::from_secs(90));
-        if !watched.load(std::sync::atomic::Ordering::SeqCst) {
-            // SAFETY: kill(2) on the child's pid, which `wait_with_output` has not reaped yet.
-            unsafe { libc::kill(pid, libc::SIGKILL) };
-        }
-    });
+    let (child, watchdog) = track_live(&plan, &url, &init, &results);
     let o = child.wait_with_output().unwrap();
-    done.store(true, std::sync::atomic::Ordering::SeqCst);
+    watchdog.disarm();
     let _ = server.kill();
     let _ = server.wait();
     let err = String::from_utf8_lossy(&o.stderr);
