@@ -69,8 +69,8 @@ impl Onnx {
         // A graph's inputs, outputs and initializers have names (an empty name is an absent
         // optional value to a node; fuzzing found an importer panicking on an unnamed input).
         let named = g.input.iter().map(|v| ("input", &v.name)).chain(g.output.iter().map(|v| ("output", &v.name)));
-        let named = named.chain(g.initializer.iter().map(|t| ("initializer", &t.name)));
-        if let Some((what, _)) = named.into_iter().find(|(_, n)| n.is_empty()) {
+        let mut named = named.chain(g.initializer.iter().map(|t| ("initializer", &t.name)));
+        if let Some((what, _)) = named.find(|(_, n)| n.is_empty()) {
             return Err(graph_err(&path, format!("a graph {what} has an empty name")));
         }
         // Every value has one name and one maker: graph inputs, initializers and node outputs
