@@ -10,6 +10,7 @@
 
 pub mod nanotrack;
 mod proto;
+mod shapes;
 
 use std::path::{Path, PathBuf};
 
