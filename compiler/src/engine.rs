@@ -56,6 +56,7 @@ impl OnnxRunner {
         if let Some(names) = outputs {
             model.select_outputs_by_name(names.iter()).map_err(err)?;
         }
+        crate::shapes::ensure_fixed_shapes(&mut model).map_err(err)?;
         let names = model
             .output_outlets()
             .map_err(err)?

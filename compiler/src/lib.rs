@@ -19,6 +19,7 @@ pub mod net;
 pub mod onnx;
 mod plan;
 pub mod quant;
+mod shapes;
 mod tensor;
 mod verify;
 mod weights;

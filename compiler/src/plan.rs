@@ -94,6 +94,7 @@ fn to_nnef(onnx: &[u8], info: &GraphInfo, context: &str) -> Result<Vec<u8>> {
     for (i, t) in info.inputs.iter().enumerate() {
         model.set_input_fact(i, InferenceFact::dt_shape(f32::datum_type(), &t.shape)).map_err(err)?;
     }
+    crate::shapes::ensure_fixed_shapes(&mut model).map_err(err)?;
     let model = model.into_typed().and_then(|m| m.into_decluttered()).map_err(err)?;
     prl_runtime::nnef().write_to_tar(&model, Vec::new()).map_err(err)
 }

@@ -10,7 +10,6 @@
 
 pub mod nanotrack;
 mod proto;
-mod shapes;
 
 use std::path::{Path, PathBuf};
 
