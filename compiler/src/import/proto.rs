@@ -471,7 +471,7 @@ mod tests {
         let mut model = g.to_model("test");
         model.graph.as_mut().unwrap().input[0].name.clear();
         let file = super::super::OnnxFile { path: "unnamed.onnx".into(), bytes: model.encode_to_vec() };
-        let e = Onnx::decode(&file).err().expect("refused").to_string();
+        let e = Onnx::decode(&file).unwrap_err().to_string();
         assert_eq!(e, "unnamed.onnx: a graph input has an empty name");
     }
 
