@@ -2,12 +2,12 @@
 //! the first node whose output size is not a number.
 //!
 //! The importer, the compiler and the verifier fix every input's shape, so every size in the
-//! graph is a number or not yet known. tract 0.23.9 keeps an impossible broadcast of two numbers (16 against 3) as the
-//! expression `broadcast(16, 3)` instead of failing, and every later layer grows it: on a head
-//! of 40 convolutions its whole-graph analysis then spent seconds simplifying the expressions
-//! (found by the `onnx_import` fuzz target: one stride of a fuzzed head changed). The work grows
-//! about tenfold with each convolution after the broadcast: without bound. This pass finds such a node first, in time linear in the graph,
-//! and the file is refused naming it.
+//! graph is a number or not yet known. tract 0.23.9 keeps an impossible broadcast of two numbers
+//! (16 against 3) as the expression `broadcast(16, 3)` instead of failing, and every later layer
+//! grows it: on a head of 40 convolutions its whole-graph analysis then spent seconds simplifying
+//! the expressions (found by the `onnx_import` fuzz target: one stride of a fuzzed head changed).
+//! The work grows about tenfold with each convolution after the broadcast: without bound. This
+//! pass finds such a node first, in time linear in the graph, and the file is refused naming it.
 
 use tract_onnx::prelude::*;
 use tract_onnx::tract_hir::infer::{Factoid, InferenceFact};
