@@ -216,14 +216,32 @@ fn merge(group: &mut [AxisAt], order: usize, strides: [&[usize]; 3]) -> Option<(
     Some((group.iter().map(|a| a.len).product(), stride))
 }
 
-/// The [`ConstMatMul`] and its data input for an f32 two-input `EinSum` with one constant
-/// operand, whose axes (ignoring those of length 1) are only: summed over both inputs (k),
-/// from the constant to the output (m), from the data to the output (n), each group mergeable
-/// into one strided index in every tensor that holds it, and large enough to fill the tile.
-/// The shortest reduction [`ConstMatMul`] takes over from tract.
-const MIN_K: usize = 128;
+/// One index of a [`ConstProduct`]: its length and its stride in the constant, the data and
+/// the output (0 where absent).
+pub(super) type Index = (usize, [usize; 3]);
 
-pub(crate) fn const_matmul(model: &TypedModel, node: &TypedNode) -> TractResult<Option<(ConstMatMul, OutletId)>> {
+/// An f32 two-input `EinSum` with one constant operand read as one product
+/// `out(m, n) = Σ_k w(m, k) · x(k, n)`, each index a merged group of the einsum's axes.
+pub(super) struct ConstProduct {
+    /// Summed over both inputs.
+    pub k: Index,
+    /// From the constant to the output.
+    pub m: Index,
+    /// From the data to the output.
+    pub n: Index,
+    /// The constant operand (`w`).
+    pub konst: Arc<Tensor>,
+    /// The data input (`x`).
+    pub data: OutletId,
+    /// The einsum's output shape.
+    pub output_shape: TVec<usize>,
+}
+
+/// The einsum `node` as a [`ConstProduct`], if it is one: f32, two inputs of which one is
+/// constant, whose axes (ignoring those of length 1) are only summed over both inputs (k), from
+/// the constant to the output (m) and from the data to the output (n), each group mergeable
+/// into one strided index in every tensor that holds it.
+pub(super) fn const_product(model: &TypedModel, node: &TypedNode) -> TractResult<Option<ConstProduct>> {
     let Some(e) = node.op_as::<EinSum>() else { return Ok(None) };
     let facts = model.node_input_facts(node.id)?;
     if e.q_params.is_some() || e.operating_dt != f32::datum_type() || facts.len() != 2 {
@@ -268,13 +286,24 @@ pub(crate) fn const_matmul(model: &TypedModel, node: &TypedNode) -> TractResult<
     let (Some(k), Some(m), Some(n)) = (merge(gk, 1, st), merge(gm, 0, st), merge(gn, 1, st)) else {
         return Ok(None);
     };
+    let konst = facts[c].konst.clone().expect("the constant operand");
+    Ok(Some(ConstProduct { k, m, n, konst, data: node.inputs[d], output_shape: os.iter().copied().collect() }))
+}
+
+/// The shortest reduction [`ConstMatMul`] takes over from tract.
+const MIN_K: usize = 128;
+
+/// The [`ConstMatMul`] and its data input for a [`ConstProduct`] large enough to fill the tile.
+pub(crate) fn const_matmul(model: &TypedModel, node: &TypedNode) -> TractResult<Option<(ConstMatMul, OutletId)>> {
+    let Some(ConstProduct { k, m, n, konst, data, output_shape }) = const_product(model, node)? else {
+        return Ok(None);
+    };
     // Products too small to fill the register tile stay with tract, and so do short
     // reductions: on NanoTrack's pointwise convolutions (k = 40..96) tract's packed kernels were
     // faster (search step 2.65 -> 2.2 ms without this op there); HMG's k is 192..768.
     if m.0 < 2 * PANEL || n.0 < 2 * ROWS || k.0 < MIN_K {
         return Ok(None);
     }
-    let konst = facts[c].konst.as_ref().expect("the constant operand");
     let w = konst.try_as_plain_ram()?;
     let w = w.as_slice::<f32>()?;
     let mut panels = vec![0f32; m.0.div_ceil(PANEL) * PANEL * k.0];
@@ -288,9 +317,9 @@ pub(crate) fn const_matmul(model: &TypedModel, node: &TypedNode) -> TractResult<
         m: Dim { len: m.0, input: m.1[0], output: m.1[2] },
         n: Dim { len: n.0, input: n.1[1], output: n.1[2] },
         k: Dim { len: k.0, input: k.1[1], output: 0 },
-        output_shape: os.iter().copied().collect(),
+        output_shape,
     };
-    Ok(Some((op, node.inputs[d])))
+    Ok(Some((op, data)))
 }
 
 #[cfg(test)]

@@ -3,7 +3,7 @@
 //! ([`DepthwiseXCorr`]), convolutions ([`PackedConv`], stride 1 or 2, and [`DepthwiseConv`] for
 //! depthwise ones with constant weights, and [`PackedQConv`] for int8
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some, or aarch64's dot product), max pooling
-//! ([`ChannelMaxPool`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
+//! ([`ChannelMaxPool`]), pointwise convolutions with their bias and activation ([`PointwiseConv`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
 //! norms ([`LayerNormCore`]), linear layers ([`ConstMatMul`]) and broadcast products and sums
 //! ([`BroadcastBinary`]), and int8 plans' quantisation of activations ([`QuantizeU8`]). Plans
 //! on disk keep tract's
@@ -18,6 +18,7 @@ mod dwconv;
 mod dwconv_hwc;
 mod matmul;
 mod norm;
+mod pointwise;
 mod pool;
 mod qconv;
 mod qconv_amx;
@@ -34,6 +35,7 @@ pub use dwconv::DepthwiseConv;
 pub use dwconv_hwc::DepthwiseConvHwc;
 pub use matmul::ConstMatMul;
 pub use norm::LayerNormCore;
+pub use pointwise::PointwiseConv;
 pub use pool::ChannelMaxPool;
 pub use qconv::PackedQConv;
 pub use quant::QuantizeU8;
@@ -69,6 +71,9 @@ pub struct Accelerated {
     pub norms: usize,
     /// f32 products with a constant operand made [`ConstMatMul`].
     pub matmuls: usize,
+    /// Pointwise convolutions (channels-first einsums with constant weights, with the bias and
+    /// activation after them) made [`PointwiseConv`].
+    pub pointwise: usize,
     /// Broadcast f32 products and sums made [`BroadcastBinary`].
     pub broadcasts: usize,
     /// Quantisations of f32 activations to u8 made [`QuantizeU8`].
@@ -79,7 +84,12 @@ pub struct Accelerated {
 /// before tract optimises the model.
 pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
     let mut done = Accelerated::default();
+    // Nodes a fused operator stands for: left to be removed, not replaced.
+    let mut fused = std::collections::HashSet::new();
     for id in model.eval_order()? {
+        if fused.contains(&id) {
+            continue;
+        }
         let node = model.node(id);
         // A packed convolution holds its weights and bias: it reads only the data input.
         let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = conv::packed(model, node)? {
@@ -106,6 +116,13 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         } else if let Some((op, x)) = matmul::const_matmul(model, node)? {
             done.matmuls += 1;
             (Box::new(op), tvec![x])
+        } else if let Some((op, x, chain)) = pointwise::pointwise(model, node)? {
+            done.pointwise += 1;
+            let last = *chain.last().expect("the einsum at least");
+            fused.extend(chain);
+            let patch = TypedModelPatch::replace_single_op(model, model.node(last), &[x], op)?;
+            patch.apply(model)?;
+            continue;
         } else if let Some(op) = binary::broadcast_binary(model, node)? {
             done.broadcasts += 1;
             (Box::new(op), node.inputs.iter().copied().collect())
@@ -190,8 +207,8 @@ pub(crate) fn amx_available() -> bool {
 pub(crate) fn kernel_name(op: &str, info: &str) -> String {
     let isa = crate::isa();
     match op {
-        "PackedConv" | "DepthwiseConv" | "DepthwiseConvHwc" | "DepthwiseXCorr" | "ConstMatMul" | "AttnScores"
-        | "AttnMix" | "RowSoftmax" | "QuantizeU8" => crate::isa::f32_kernel().name().to_string(),
+        "PackedConv" | "DepthwiseConv" | "DepthwiseConvHwc" | "DepthwiseXCorr" | "ConstMatMul" | "PointwiseConv"
+        | "AttnScores" | "AttnMix" | "RowSoftmax" | "QuantizeU8" => crate::isa::f32_kernel().name().to_string(),
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
         "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" => "portable (vectorised)".to_string(),
         _ => info

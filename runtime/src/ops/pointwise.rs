@@ -1,0 +1,633 @@
+//! Pointwise (1x1) convolutions on channels-first data ([`PointwiseConv`]), with their bias and
+//! the activation after them fused: the einsum `mk,kn->mn` that tract declutters a 1x1 `Conv`
+//! into (the weights constant, the positions `n` contiguous in the data and in the output),
+//! followed by the bias `Add`, a clamp (`Max` and/or `Min` with a constant: ReLU, ReLU6) and
+//! tract's `HardSwish`, reshapes between them allowed.
+//!
+//! tract packs the data of every such product before multiplying (NanoTrack's 24 pointwise
+//! convolutions: 0.3 ms of packing in a 3.3 ms search step) and picks, for the short reductions
+//! of a MobileNet (k = 16..96), kernels that ran at 35-50 GFLOP/s here. Here the data is read
+//! where it lies: each `k` row of 64 positions is four vectors, multiplied by 6 output channels'
+//! weights (packed `[m / 6][k][6]` at load), 24 accumulators; the bias and the activation are
+//! applied before the tile is stored. The sums run in order of k.
+
+use std::sync::Arc;
+
+use tract_nnef::internal::*;
+use tract_nnef::tract_core::ops::binary::TypedBinOp;
+use tract_nnef::tract_core::ops::element_wise::ElementWiseOp;
+use tract_nnef::tract_core::ops::math::{Add, Max, Min};
+use tract_nnef::tract_core::ops::nn::HardSwish;
+
+use super::matmul::{const_product, ConstProduct};
+use super::{par_for, same_bits, SyncPtr};
+
+/// Output channels per packed panel (rows of the register tile).
+const MR: usize = 6;
+/// Positions per register tile (four 16-lane vectors).
+const NB: usize = 64;
+/// Products under this many multiply-adds run on the calling thread.
+const SERIAL_MACS: usize = 1 << 20;
+
+/// What follows the product: the bias, then `min(max(v, lo), hi)`, then tract's hard-swish
+/// `v · clamp(v + 3, 0, 6) · (1/6)` when `hard_swish`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Activation {
+    lo: f32,
+    hi: f32,
+    hard_swish: bool,
+}
+
+impl Activation {
+    const NONE: Activation = Activation { lo: f32::NEG_INFINITY, hi: f32::INFINITY, hard_swish: false };
+
+    fn clamps(&self) -> bool {
+        self.lo != f32::NEG_INFINITY || self.hi != f32::INFINITY
+    }
+
+    /// The activation of one value (the scalar form every path computes).
+    #[inline(always)]
+    fn apply(&self, v: f32) -> f32 {
+        let v = if self.clamps() { v.max(self.lo).min(self.hi) } else { v };
+        if self.hard_swish {
+            v * (v + 3.0).clamp(0.0, 6.0) * (1.0 / 6.0)
+        } else {
+            v
+        }
+    }
+}
+
+/// `out(m, n) = act(bias(m) + Σ_k w(m, k) · x(k, n))` on `x` laid out `[k][n]` and `out`
+/// `[m][n]` (a 1x1 convolution of one image, channels first).
+#[derive(Debug, Clone)]
+pub struct PointwiseConv {
+    /// `[m / MR][k][MR]`, zero past `m`.
+    panels: Arc<Vec<f32>>,
+    /// `m` values (zero where the graph has no bias).
+    bias: Arc<Vec<f32>>,
+    act: Activation,
+    m: usize,
+    k: usize,
+    n: usize,
+    output_shape: TVec<usize>,
+}
+
+impl PartialEq for PointwiseConv {
+    fn eq(&self, other: &Self) -> bool {
+        (self.m, self.k, self.n, self.act) == (other.m, other.k, other.n, other.act)
+            && self.output_shape == other.output_shape
+            && same_bits(&self.panels, &other.panels)
+            && same_bits(&self.bias, &other.bias)
+    }
+}
+
+impl Eq for PointwiseConv {}
+
+impl Op for PointwiseConv {
+    fn name(&self) -> StaticName {
+        "PointwiseConv".into()
+    }
+
+    fn info(&self) -> TractResult<Vec<String>> {
+        let act = match (self.act.clamps(), self.act.hard_swish) {
+            (false, false) => "none".to_string(),
+            (true, false) => format!("clamp {}..{}", self.act.lo, self.act.hi),
+            (false, true) => "hard-swish".to_string(),
+            (true, true) => format!("clamp {}..{}, hard-swish", self.act.lo, self.act.hi),
+        };
+        Ok(vec![format!("m {}, n {}, k {}, activation {act}", self.m, self.n, self.k)])
+    }
+
+    op_as_typed_op!();
+}
+
+impl EvalOp for PointwiseConv {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let x = args_1!(inputs);
+        let x = x.try_as_plain_ram()?;
+        let x = x.as_slice::<f32>()?;
+        ensure!(x.len() == self.k * self.n, "PointwiseConv: {} inputs for k {} x n {}", x.len(), self.k, self.n);
+        ensure!(self.output_shape.iter().product::<usize>() == self.m * self.n, "PointwiseConv: output shape");
+        // SAFETY: f32 has no invalid bit patterns, and every element is written below: the
+        // blocks cover the n columns of all m rows.
+        let mut out = unsafe { Tensor::uninitialized_dt(f32::datum_type(), &self.output_shape)? };
+        {
+            let mut plain = out.try_as_plain_ram_mut()?;
+            let dst = SyncPtr(plain.as_slice_mut::<f32>()?.as_mut_ptr());
+            let blocks = self.n.div_ceil(NB);
+            // SAFETY (both closures): blocks write disjoint columns of the m x n output.
+            let run = |b: usize| unsafe { self.block(x, b * NB, &dst) };
+            if self.m * self.n * self.k < SERIAL_MACS {
+                (0..blocks).for_each(run);
+            } else {
+                par_for(blocks, run);
+            }
+        }
+        Ok(tvec!(out.into_tvalue()))
+    }
+}
+
+impl TypedOp for PointwiseConv {
+    fn output_facts(&self, _inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        Ok(tvec!(f32::fact(&self.output_shape)))
+    }
+
+    fn cost(&self, _inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
+        Ok(tvec!((Cost::FMA(f32::datum_type()), (self.m * self.n * self.k).into())))
+    }
+
+    as_op!();
+}
+
+impl PointwiseConv {
+    /// Every output channel at the columns `j0..j0 + NB` (fewer at the end).
+    ///
+    /// # Safety
+    /// `out` points at the `m x n` output, whose columns `j0..j0 + NB` no other thread writes
+    /// meanwhile.
+    unsafe fn block(&self, x: &[f32], j0: usize, out: &SyncPtr<f32>) {
+        let (k, n) = (self.k, self.n);
+        let cols = NB.min(n - j0);
+        // A short last block runs on a copy padded to NB columns, into a tile of its own.
+        let padded: Vec<f32>;
+        let (xs, ldx) = if cols == NB {
+            (&x[j0..], n)
+        } else {
+            padded =
+                (0..k).flat_map(|i| (0..NB).map(move |j| if j < cols { x[i * n + j0 + j] } else { 0.0 })).collect();
+            (&padded[..], NB)
+        };
+        for p in 0..self.m.div_ceil(MR) {
+            let panel = &self.panels[p * k * MR..(p + 1) * k * MR];
+            let rows = MR.min(self.m - p * MR);
+            let bias: [f32; MR] = std::array::from_fn(|r| if r < rows { self.bias[p * MR + r] } else { 0.0 });
+            // SAFETY: row `p·MR + r < m` of the output, columns `j0..j0 + cols <= n`, in this
+            // block's columns (the caller's promise).
+            let at = unsafe { out.at(p * MR * n + j0) };
+            if cols == NB {
+                // SAFETY: as above, `rows` rows of NB values n apart.
+                unsafe { tile(panel, xs, ldx, bias, self.act, at, n, rows) };
+            } else {
+                let mut t = [[0f32; NB]; MR];
+                // SAFETY: the local tile holds MR rows of NB.
+                unsafe { tile(panel, xs, ldx, bias, self.act, t.as_mut_ptr().cast(), NB, MR) };
+                for (r, row) in t.iter().enumerate().take(rows) {
+                    // SAFETY: as above.
+                    unsafe { std::ptr::copy_nonoverlapping(row.as_ptr(), at.add(r * n), cols) };
+                }
+            }
+        }
+    }
+}
+
+/// One register tile: `act(bias(r) + Σ_i panel[i][r] · x[i·ldx + j])` for the panel's `MR`
+/// rows and `NB` columns `j` (`x` holds `k` rows of at least `NB` values, `ldx` apart), rows
+/// `r < rows` written at `out + r·ldo`.
+///
+/// # Safety
+/// `out` is valid for writes of `rows <= MR` rows of `NB` values, `ldo` apart, that no one
+/// else accesses meanwhile.
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile(
+    panel: &[f32],
+    x: &[f32],
+    ldx: usize,
+    bias: [f32; MR],
+    act: Activation,
+    out: *mut f32,
+    ldo: usize,
+    rows: usize,
+) {
+    let k = panel.len() / MR;
+    assert!(k == 0 || x.len() >= (k - 1) * ldx + NB, "k rows of NB values");
+    assert!(rows <= MR);
+    use crate::isa::F32Kernel;
+    // SAFETY: the CPU has the features each function is compiled for (the table's needs;
+    // AVX-512 implies AVX2 + FMA); `out` as the caller promises.
+    unsafe {
+        match crate::isa::f32_kernel() {
+            #[cfg(target_arch = "x86_64")]
+            F32Kernel::Avx512 => tile_avx512(panel, x, ldx, bias, act, out, ldo, rows),
+            #[cfg(target_arch = "x86_64")]
+            F32Kernel::Avx2Fma => tile_fma(panel, x, ldx, bias, act, out, ldo, rows),
+            F32Kernel::Neon => tile_generic::<true>(panel, x, ldx, bias, act, out, ldo, rows),
+            _ => tile_generic::<false>(panel, x, ldx, bias, act, out, ldo, rows),
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile_avx512(
+    panel: &[f32],
+    x: &[f32],
+    ldx: usize,
+    bias: [f32; MR],
+    act: Activation,
+    out: *mut f32,
+    ldo: usize,
+    rows: usize,
+) {
+    use std::arch::x86_64::*;
+    const V: usize = NB / 16;
+    let k = panel.len() / MR;
+    let mut acc = [[_mm512_setzero_ps(); V]; MR];
+    let (w, xp) = (panel.as_ptr(), x.as_ptr());
+    for i in 0..k {
+        // SAFETY: i < k: the panel holds k rows of MR, x k rows of NB values ldx apart
+        // (asserted by `tile`).
+        unsafe {
+            let xv: [__m512; V] = std::array::from_fn(|v| _mm512_loadu_ps(xp.add(i * ldx + v * 16)));
+            for (r, acc) in acc.iter_mut().enumerate() {
+                let c = _mm512_set1_ps(*w.add(i * MR + r));
+                for (a, &xv) in acc.iter_mut().zip(&xv) {
+                    *a = _mm512_fmadd_ps(c, xv, *a);
+                }
+            }
+        }
+    }
+    let (lo, hi) = (_mm512_set1_ps(act.lo), _mm512_set1_ps(act.hi));
+    let (three, six, zero, sixth) =
+        (_mm512_set1_ps(3.0), _mm512_set1_ps(6.0), _mm512_setzero_ps(), _mm512_set1_ps(1.0 / 6.0));
+    for (r, (acc, b)) in acc.into_iter().zip(bias).enumerate().take(rows) {
+        let b = _mm512_set1_ps(b);
+        for (v, a) in acc.into_iter().enumerate() {
+            let mut y = _mm512_add_ps(a, b);
+            if act.clamps() {
+                y = _mm512_min_ps(_mm512_max_ps(y, lo), hi);
+            }
+            if act.hard_swish {
+                let r6 = _mm512_min_ps(_mm512_max_ps(_mm512_add_ps(y, three), zero), six);
+                y = _mm512_mul_ps(_mm512_mul_ps(y, r6), sixth);
+            }
+            // SAFETY: row r < rows, 16 floats at column 16·v < NB (the caller's promise).
+            unsafe { _mm512_storeu_ps(out.add(r * ldo + v * 16), y) };
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile_fma(
+    panel: &[f32],
+    x: &[f32],
+    ldx: usize,
+    bias: [f32; MR],
+    act: Activation,
+    out: *mut f32,
+    ldo: usize,
+    rows: usize,
+) {
+    // SAFETY: the caller's promise, passed on.
+    unsafe { tile_generic::<true>(panel, x, ldx, bias, act, out, ldo, rows) }
+}
+
+/// [`tile`] in 16-column quarters of `MR x 16` accumulators (24 NEON registers; vectorised by
+/// the compiler), with fused multiply-adds when `FUSED`.
+///
+/// # Safety
+/// As [`tile`].
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile_generic<const FUSED: bool>(
+    panel: &[f32],
+    x: &[f32],
+    ldx: usize,
+    bias: [f32; MR],
+    act: Activation,
+    out: *mut f32,
+    ldo: usize,
+    rows: usize,
+) {
+    for q in 0..NB / 16 {
+        let mut acc = [[0f32; 16]; MR];
+        for (i, w) in panel.chunks_exact(MR).enumerate() {
+            let xs: &[f32; 16] = x[i * ldx + q * 16..][..16].try_into().expect("16 values of a row");
+            for (acc, &c) in acc.iter_mut().zip(w) {
+                for (a, &v) in acc.iter_mut().zip(xs) {
+                    *a = if FUSED { c.mul_add(v, *a) } else { c * v + *a };
+                }
+            }
+        }
+        for (r, (acc, b)) in acc.into_iter().zip(bias).enumerate().take(rows) {
+            for (j, a) in acc.into_iter().enumerate() {
+                // SAFETY: row r < rows, column 16·q + j < NB (the caller's promise).
+                unsafe { *out.add(r * ldo + q * 16 + j) = act.apply(a + b) };
+            }
+        }
+    }
+}
+
+/// The sole consumer of `node`'s single output, if it has exactly one and that output is not
+/// one of the model's.
+fn sole_consumer<'m>(model: &'m TypedModel, node: &TypedNode) -> Option<&'m TypedNode> {
+    let outlet = OutletId::new(node.id, 0);
+    match (&node.outputs[..], model.output_outlets().ok()?.contains(&outlet)) {
+        ([o], false) if o.successors.len() == 1 => Some(model.node(o.successors[0].node)),
+        _ => None,
+    }
+}
+
+/// The constant other input of a binary `node` whose other input is `from`.
+fn other_const(model: &TypedModel, node: &TypedNode, from: OutletId) -> Option<Arc<Tensor>> {
+    let [a, b] = node.inputs[..] else { return None };
+    let other = if a == from {
+        b
+    } else if b == from {
+        a
+    } else {
+        return None;
+    };
+    model.outlet_fact(other).ok()?.konst.clone()
+}
+
+/// The bias of a per-channel `Add` on an `[.., m, ..][n]`-shaped value of `shape`, from its
+/// constant: `m` values, broadcast over the trailing axes that make up `n`.
+fn bias_of(konst: &Tensor, shape: &[usize], m: usize, n: usize) -> Option<Vec<f32>> {
+    if konst.datum_type() != f32::datum_type() || konst.len() != m || konst.rank() > shape.len() {
+        return None;
+    }
+    let pad = shape.len() - konst.rank();
+    let c = |a: usize| if a < pad { 1 } else { konst.shape()[a - pad] };
+    // The axes from `split` on are the positions; those before it the channels.
+    let split = (0..=shape.len()).find(|&j| shape[j..].iter().product::<usize>() == n)?;
+    let fits = (0..shape.len()).all(|a| if a < split { c(a) == shape[a] } else { c(a) == 1 });
+    fits.then(|| konst.try_as_plain_ram().ok()?.as_slice::<f32>().ok().map(<[f32]>::to_vec)).flatten()
+}
+
+/// A [`PointwiseConv`] for the einsum `node` and what follows it; returns the op, its data
+/// input and the nodes it stands for, the last of which it replaces.
+pub(crate) fn pointwise(
+    model: &TypedModel,
+    node: &TypedNode,
+) -> TractResult<Option<(PointwiseConv, OutletId, Vec<usize>)>> {
+    let Some(ConstProduct { k, m, n, konst, data, output_shape }) = const_product(model, node)? else {
+        return Ok(None);
+    };
+    // Channels first: positions contiguous in the data and the output, rows of n.
+    if n.1[1] != 1 || n.1[2] != 1 || k.1[1] != n.0 || m.1[2] != n.0 {
+        return Ok(None);
+    }
+    if model.outlet_fact(data)?.shape.as_concrete().is_none_or(|s| s.iter().product::<usize>() != k.0 * n.0) {
+        return Ok(None);
+    }
+    let (mut bias, mut act, mut chain, mut shape) = (None, Activation::NONE, vec![node.id], output_shape);
+    let mut last = node;
+    while let Some(next) = sole_consumer(model, last) {
+        let from = OutletId::new(last.id, 0);
+        let bin = next.op_as::<TypedBinOp>();
+        if next.op_as::<AxisOp>().is_some() && !act.hard_swish {
+            // A reshape: the same values in the same order.
+        } else if bin.is_some_and(|b| b.0.is::<Add>()) && bias.is_none() && act == Activation::NONE {
+            let Some(b) = other_const(model, next, from).and_then(|c| bias_of(&c, &shape, m.0, n.0)) else { break };
+            bias = Some(b);
+        } else if let Some(b) = bin.filter(|b| (b.0.is::<Max>() || b.0.is::<Min>()) && !act.hard_swish) {
+            let Some(c) = other_const(model, next, from).filter(|c| c.len() == 1) else { break };
+            let Ok(c) = c.cast_to_scalar::<f32>() else { break };
+            let is_max = b.0.is::<Max>();
+            let (bound, other) = if is_max { (&mut act.lo, act.hi) } else { (&mut act.hi, act.lo) };
+            // One bound of each kind, lo <= hi: then the order they come in does not matter.
+            if bound.is_finite() || c.is_nan() || (if is_max { c > other } else { c < other }) {
+                break;
+            }
+            *bound = c;
+        } else if next.op_as::<ElementWiseOp>().is_some_and(|e| e.0.is::<HardSwish>()) && !act.hard_swish {
+            act.hard_swish = true;
+        } else {
+            break;
+        }
+        if next.outputs[0].fact.datum_type != f32::datum_type() {
+            break;
+        }
+        shape = match next.outputs[0].fact.shape.as_concrete() {
+            Some(s) => s.iter().copied().collect(),
+            None => break,
+        };
+        chain.push(next.id);
+        last = next;
+    }
+    // Trailing reshapes stay tract's (the op's output takes the shape of the last fused node).
+    while chain.len() > 1 && model.node(*chain.last().expect("non-empty")).op_as::<AxisOp>().is_some() {
+        chain.pop();
+    }
+    let last = model.node(*chain.last().expect("non-empty"));
+    let w = konst.try_as_plain_ram()?;
+    let w = w.as_slice::<f32>()?;
+    let mut panels = vec![0f32; m.0.div_ceil(MR) * MR * k.0];
+    for f in 0..m.0 {
+        for i in 0..k.0 {
+            panels[((f / MR) * k.0 + i) * MR + f % MR] = w[f * m.1[0] + i * k.1[0]];
+        }
+    }
+    let op = PointwiseConv {
+        panels: Arc::new(panels),
+        bias: Arc::new(bias.unwrap_or_else(|| vec![0.0; m.0])),
+        act,
+        m: m.0,
+        k: k.0,
+        n: n.0,
+        output_shape: last.outputs[0].fact.shape.as_concrete().expect("checked above").iter().copied().collect(),
+    };
+    Ok(Some((op, data, chain)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tract_nnef::tract_core::ops::einsum::EinSum;
+    use tract_nnef::tract_core::ops::math::{add, max, min};
+    use tract_nnef::tract_core::ops::nn::hard_swish;
+
+    fn values(len: usize, seed: usize) -> Vec<f32> {
+        (0..len).map(|i| (((i + seed) * 7919 % 1000) as f32) / 250.0 - 2.0).collect()
+    }
+
+    /// Every tile path the CPU can run, against sums in f64, for each kind of activation.
+    #[test]
+    fn every_kernel_path_equals_the_direct_sum() {
+        let (k, ldx) = (37, NB + 5);
+        let panel = values(k * MR, 3);
+        let x = values(k * ldx, 1);
+        let bias: [f32; MR] = std::array::from_fn(|r| r as f32 * 0.5 - 1.0);
+        let acts = [
+            Activation::NONE,
+            Activation { lo: 0.0, hi: 6.0, hard_swish: false },
+            Activation { hard_swish: true, ..Activation::NONE },
+        ];
+        for act in acts {
+            let want: Vec<Vec<f64>> = (0..MR)
+                .map(|r| {
+                    (0..NB)
+                        .map(|j| {
+                            let s: f64 = (0..k).map(|i| panel[i * MR + r] as f64 * x[i * ldx + j] as f64).sum();
+                            act.apply((s + bias[r] as f64) as f32) as f64
+                        })
+                        .collect()
+                })
+                .collect();
+            type Path = unsafe fn(&[f32], &[f32], usize, [f32; MR], Activation, *mut f32, usize, usize);
+            let mut paths: Vec<(&str, Path)> = vec![
+                ("dispatched", tile),
+                ("generic fused", tile_generic::<true>),
+                ("generic plain", tile_generic::<false>),
+            ];
+            #[cfg(target_arch = "x86_64")]
+            {
+                if super::super::avx2_fma() {
+                    paths.push(("avx2+fma", tile_fma));
+                } else {
+                    eprintln!(
+                        "NOTE: no AVX2+FMA here (or PRL_ISA caps it): PointwiseConv's AVX2 path is not tested here"
+                    );
+                }
+                if super::super::avx512_fma() {
+                    paths.push(("avx512", tile_avx512));
+                } else {
+                    eprintln!(
+                        "NOTE: no AVX-512 here (or PRL_ISA caps it): PointwiseConv's AVX-512 path is not tested here"
+                    );
+                }
+            }
+            for (name, path) in paths {
+                // Rows past `rows` must stay untouched.
+                let mut out = [[f32::NAN; NB]; MR];
+                // SAFETY: the local tile holds MR rows of NB; the paths run only where the CPU
+                // has their features (checked above).
+                unsafe { path(&panel, &x, ldx, bias, act, out.as_mut_ptr().cast(), NB, MR - 1) };
+                for r in 0..MR {
+                    for j in 0..NB {
+                        let (g, w) = (out[r][j], want[r][j]);
+                        if r == MR - 1 {
+                            assert!(g.is_nan(), "{name}: row {r} written");
+                        } else {
+                            assert!(
+                                (g as f64 - w).abs() <= 1e-4 * w.abs().max(1.0),
+                                "{name} {act:?}: {r},{j}: {g} vs {w}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// A model of one 1x1 convolution as tract declutters it (`mk,kn->mn`, then the bias and
+    /// what `tail` adds), run by tract and after [`accelerate`](super::super::accelerate).
+    fn check(
+        m: usize,
+        k: usize,
+        h: usize,
+        w: usize,
+        tail: impl Fn(&mut TypedModel, OutletId) -> OutletId,
+        fused: usize,
+    ) {
+        let n = h * w;
+        let mut model = TypedModel::default();
+        let x = model.add_source("x", f32::fact([k, n])).unwrap();
+        let wt = model.add_const("w", Tensor::from_shape(&[m, k], &values(m * k, 3)).unwrap()).unwrap();
+        let y = model.wire_node("product", EinSum::new("mk,kn->mn".parse().unwrap(), f32::datum_type()), &[wt, x]);
+        let y = tail(&mut model, y.unwrap()[0]);
+        model.select_output_outlets(&[y]).unwrap();
+        let input = Tensor::from_shape(&[k, n], &values(k * n, 1)).unwrap();
+        let want = model.clone().into_runnable().unwrap().run(tvec![input.clone().into_tvalue()]).unwrap();
+        let nodes = model.nodes().len();
+        let done = super::super::accelerate(&mut model).unwrap();
+        assert_eq!(done.pointwise, 1);
+        // The product's constant and the fused nodes (with their constants) are gone.
+        assert_eq!(nodes - model.nodes().len(), fused, "nodes removed");
+        let got = model.into_runnable().unwrap().run(tvec![input.into_tvalue()]).unwrap();
+        assert_eq!(got[0].shape(), want[0].shape());
+        let (got, want) = (got[0].try_as_plain_ram().unwrap(), want[0].try_as_plain_ram().unwrap());
+        let (got, want) = (got.as_slice::<f32>().unwrap(), want.as_slice::<f32>().unwrap());
+        for (i, (g, w)) in got.iter().zip(want).enumerate() {
+            assert!((g - w).abs() <= 1e-4 * w.abs().max(1.0), "element {i}: {g} vs {w}");
+        }
+    }
+
+    fn konst(model: &mut TypedModel, name: &str, shape: &[usize], v: Vec<f32>) -> OutletId {
+        model.add_const(name, Tensor::from_shape(shape, &v).unwrap()).unwrap()
+    }
+
+    fn bin(model: &mut TypedModel, name: &str, op: TypedBinOp, a: OutletId, b: OutletId) -> OutletId {
+        model.wire_node(name, op, &[a, b]).unwrap()[0]
+    }
+
+    #[test]
+    fn fuses_the_bias_and_activation_of_a_1x1_convolution() {
+        // m not a multiple of the panel, n of the tile (a short last block).
+        let bias_relu6 = |m: usize| {
+            move |model: &mut TypedModel, y: OutletId| {
+                let b = konst(model, "b", &[m, 1], values(m, 5));
+                let y = bin(model, "bias", add(), y, b);
+                let lo = konst(model, "lo", &[1, 1], vec![0.0]);
+                let y = bin(model, "max", max(), y, lo);
+                let hi = konst(model, "hi", &[1, 1], vec![6.0]);
+                bin(model, "min", min(), y, hi)
+            }
+        };
+        check(20, 24, 10, 10, bias_relu6(20), 7);
+        check(72, 16, 16, 16, bias_relu6(72), 7);
+        // The bias, a reshape to the image, hard-swish (tract's order in NanoTrack).
+        check(
+            13,
+            40,
+            8,
+            8,
+            |model: &mut TypedModel, y: OutletId| {
+                let b = konst(model, "b", &[13, 1], values(13, 5));
+                let y = bin(model, "bias", add(), y, b);
+                let y = model.wire_node("image", AxisOp::Reshape(1, tvec![64.into()], tvec![8.into(), 8.into()]), &[y]);
+                model.wire_node("hs", hard_swish(), &y.unwrap()).unwrap()[0]
+            },
+            5,
+        );
+        // No bias; a reshape alone at the end stays tract's.
+        check(
+            8,
+            8,
+            4,
+            16,
+            |model: &mut TypedModel, y: OutletId| {
+                model
+                    .wire_node("image", AxisOp::Reshape(1, tvec![64.into()], tvec![4.into(), 16.into()]), &[y])
+                    .unwrap()[0]
+            },
+            1,
+        );
+    }
+
+    #[test]
+    fn stops_where_a_value_is_used_twice_or_the_bias_is_not_per_channel() {
+        // The biased value also feeds another node: the bias is fused, the clamp is not.
+        check(
+            12,
+            16,
+            8,
+            8,
+            |model: &mut TypedModel, y: OutletId| {
+                let b = konst(model, "b", &[12, 1], values(12, 5));
+                let y = bin(model, "bias", add(), y, b);
+                let lo = konst(model, "lo", &[1, 1], vec![0.0]);
+                let r = bin(model, "relu", max(), y, lo);
+                bin(model, "sum", add(), y, r)
+            },
+            3,
+        );
+        // A bias per position is not a convolution's: only the product is replaced.
+        check(
+            12,
+            16,
+            8,
+            8,
+            |model: &mut TypedModel, y: OutletId| {
+                let b = konst(model, "b", &[1, 64], values(64, 5));
+                bin(model, "bias", add(), y, b)
+            },
+            1,
+        );
+    }
+}
