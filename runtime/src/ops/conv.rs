@@ -77,9 +77,29 @@ impl ConvShape {
                 let at = yp * wq + self.pad[1];
                 dst[at..at + self.w].copy_from_slice(row);
             } else {
+                // Even and odd columns in one pass (they go to two phases: disjoint runs).
+                let mut runs = [(0, 0); 2];
                 for (first, at) in self.phase_runs(yp) {
-                    let dst = &mut dst[at..at + (row.len() - first).div_ceil(2)];
-                    dst.iter_mut().zip(row[first..].iter().step_by(2)).for_each(|(d, &v)| *d = v);
+                    runs[first] = (at, (row.len() - first).div_ceil(2));
+                }
+                let [(e, ne), (o, no)] = runs;
+                match dst.get_disjoint_mut([e..e + ne, o..o + no]) {
+                    Ok([even, odd]) => {
+                        for ((e, o), pair) in even.iter_mut().zip(odd.iter_mut()).zip(row.chunks_exact(2)) {
+                            (*e, *o) = (pair[0], pair[1]);
+                        }
+                        if row.len() % 2 == 1 {
+                            even[ne - 1] = row[row.len() - 1];
+                        }
+                    }
+                    // Runs of two phases do not overlap (a one-column row's odd run is empty);
+                    // were they to, one run after the other.
+                    Err(_) => {
+                        for (first, at) in self.phase_runs(yp) {
+                            let dst = &mut dst[at..at + (row.len() - first).div_ceil(2)];
+                            dst.iter_mut().zip(row[first..].iter().step_by(2)).for_each(|(d, &v)| *d = v);
+                        }
+                    }
                 }
             }
         }
@@ -367,6 +387,9 @@ mod tests {
             // Stride 2 (the regulators' 3x3 convolutions: odd and even sizes, one-sided padding).
             (ConvShape { ci: 6, h: 21, w: 21, co: 10, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 }, false),
             (ConvShape { ci: 3, h: 10, w: 13, co: 9, kh: 4, kw: 3, pad: [0, 1, 2, 0], stride: 2 }, false),
+            // One column, no odd run; one column padded on the left, no even one.
+            (ConvShape { ci: 2, h: 7, w: 1, co: 3, kh: 3, kw: 1, pad: [1, 0, 1, 0], stride: 2 }, false),
+            (ConvShape { ci: 2, h: 7, w: 1, co: 3, kh: 3, kw: 2, pad: [1, 1, 1, 0], stride: 2 }, false),
             // 32 channels or more: on AVX-512 the channels-in-lanes tiles (32 x 12 with a partial
             // block; 48 x 8, stride 2; zero taps left out).
             (ConvShape { ci: 7, h: 15, w: 17, co: 40, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, false),

@@ -65,22 +65,23 @@ pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &
 /// Write a tile's `acc[r][q]` (position `p0 + q`) to the output planes, dropping the wide
 /// columns and the positions past the end.
 #[inline(always)]
-#[allow(clippy::needless_range_loop)] // q indexes every row's accumulators
 fn scatter<const PX: usize>(l: &Layout, acc: &[[f32; PX]; ROWS], bias: &[f32; ROWS], p0: usize, out: &mut [f32]) {
     let plane = l.oh * l.ow;
     let rows = out.len() / plane;
-    let (mut y, mut x) = (p0 / l.wp, p0 % l.wp);
-    for q in 0..PX.min(l.positions() - p0) {
-        if x < l.ow {
-            let at = y * l.ow + x;
-            for r in 0..rows {
-                out[r * plane + at] = acc[r][q] + bias[r];
+    let end = PX.min(l.positions() - p0);
+    let mut q = 0;
+    // Runs of positions within one padded row; of each, the columns that exist.
+    while q < end {
+        let (y, x) = ((p0 + q) / l.wp, (p0 + q) % l.wp);
+        let run = (l.wp - x).min(end - q);
+        let valid = l.ow.saturating_sub(x).min(run);
+        for r in 0..rows {
+            let dst = &mut out[r * plane + y * l.ow + x..][..valid];
+            for (d, &a) in dst.iter_mut().zip(&acc[r][q..q + valid]) {
+                *d = a + bias[r];
             }
         }
-        x += 1;
-        if x == l.wp {
-            (y, x) = (y + 1, 0);
-        }
+        q += run;
     }
 }
 
@@ -128,42 +129,74 @@ fn positions<const FUSED: bool>(l: &Layout, padded: &[f32], weights: &[f32], bia
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn positions_avx512(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
-    use std::arch::x86_64::*;
     const CHUNK: usize = 128;
     const TILE: usize = ROWS * MAX_PX;
     let tiles = l.positions().div_ceil(MAX_PX);
+    if l.taps.len() <= CHUNK {
+        // One chunk of taps: each tile goes to the output as soon as it is summed.
+        for tile in 0..tiles {
+            let mut acc = [[0f32; MAX_PX]; ROWS];
+            // SAFETY: `channel_block` asserted every tap's tile in `padded`; `weights` holds
+            // `ROWS` values per tap; `acc` is a whole tile.
+            unsafe {
+                tile_avx512(
+                    padded.as_ptr().add(tile * MAX_PX),
+                    &l.taps,
+                    weights.as_ptr(),
+                    acc.as_mut_ptr().cast(),
+                    false,
+                )
+            };
+            scatter(l, &acc, bias, tile * MAX_PX, out);
+        }
+        return;
+    }
     let mut sums = vec![0f32; tiles * TILE];
     for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
         for (tile, sums) in sums.chunks_exact_mut(TILE).enumerate() {
-            // SAFETY (pointer reads and writes): `channel_block` asserted every tap's tile in
-            // `padded`; `weights` holds `ROWS` values per tap; `sums` holds a whole tile.
+            // SAFETY: as above, with `sums` holding a whole tile.
             unsafe {
-                let s = sums.as_mut_ptr();
-                let mut a = [_mm512_setzero_ps(); 2 * ROWS];
-                if c > 0 {
-                    for (q, a) in a.iter_mut().enumerate() {
-                        *a = _mm512_loadu_ps(s.add(16 * q));
-                    }
-                }
                 let base = padded.as_ptr().add(tile * MAX_PX);
-                let mut w = weights.as_ptr().add(c * CHUNK * ROWS);
-                for &t in taps {
-                    let x0 = _mm512_loadu_ps(base.add(t));
-                    let x1 = _mm512_loadu_ps(base.add(t + 16));
-                    for r in 0..ROWS {
-                        let b = _mm512_set1_ps(*w.add(r));
-                        a[2 * r] = _mm512_fmadd_ps(b, x0, a[2 * r]);
-                        a[2 * r + 1] = _mm512_fmadd_ps(b, x1, a[2 * r + 1]);
-                    }
-                    w = w.add(ROWS);
-                }
-                for (q, a) in a.iter().enumerate() {
-                    _mm512_storeu_ps(s.add(16 * q), *a);
-                }
-            }
+                tile_avx512(base, taps, weights.as_ptr().add(c * CHUNK * ROWS), sums.as_mut_ptr(), c > 0)
+            };
         }
     }
     scatter_tiles::<MAX_PX>(l, &sums, bias, out);
+}
+
+/// One tile's sums over `taps`: `sums[r][q] = (sums[r][q] if accumulate) + Σ_t w[t][r] ·
+/// base[t + q]` for `ROWS` rows and `MAX_PX` positions q (`sums` laid out `[ROWS][MAX_PX]`).
+///
+/// # Safety
+/// `base + t .. base + t + MAX_PX` is readable for every tap `t`, `w` holds `ROWS` values per
+/// tap, `sums` is valid for reads and writes of a whole tile.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+unsafe fn tile_avx512(base: *const f32, taps: &[usize], mut w: *const f32, sums: *mut f32, accumulate: bool) {
+    use std::arch::x86_64::*;
+    // SAFETY (pointer reads and writes): the caller's promises.
+    unsafe {
+        let mut a = [_mm512_setzero_ps(); 2 * ROWS];
+        if accumulate {
+            for (q, a) in a.iter_mut().enumerate() {
+                *a = _mm512_loadu_ps(sums.add(16 * q));
+            }
+        }
+        for &t in taps {
+            let x0 = _mm512_loadu_ps(base.add(t));
+            let x1 = _mm512_loadu_ps(base.add(t + 16));
+            for r in 0..ROWS {
+                let b = _mm512_set1_ps(*w.add(r));
+                a[2 * r] = _mm512_fmadd_ps(b, x0, a[2 * r]);
+                a[2 * r + 1] = _mm512_fmadd_ps(b, x1, a[2 * r + 1]);
+            }
+            w = w.add(ROWS);
+        }
+        for (q, a) in a.iter().enumerate() {
+            _mm512_storeu_ps(sums.add(16 * q), *a);
+        }
+    }
 }
 
 /// Positions per NEON tile: three 4-lane registers.

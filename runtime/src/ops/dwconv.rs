@@ -14,7 +14,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv::{ConstConv, ConvShape};
-use super::{output_tensor, par_chunks, same_bits};
+use super::{output_tensor_written, par_chunks, same_bits};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
 const BLOCK: usize = 32;
@@ -166,16 +166,27 @@ mod kernel {
         (ow, x0, n): (usize, usize, usize),
     ) {
         let mut acc = [[bias; B]; R];
+        // One bounds check for the block (not one per tap and row: they cost more than the
+        // multiply-adds).
+        let reach = offs.iter().max().map_or(0, |&o| at + (R - 1) * wq + o + B);
+        assert!(reach <= src.len() && ws.len() >= offs.len(), "taps within the padded plane");
         for (&off, &w) in offs.iter().zip(ws) {
             for (r, acc) in acc.iter_mut().enumerate() {
-                let s: &[f32; B] = src[at + r * wq + off..][..B].try_into().expect("B values");
+                // SAFETY: `at + r·wq + off + B <= reach <= src.len()` (asserted above).
+                let s: &[f32; B] = unsafe { &*src.as_ptr().add(at + r * wq + off).cast::<[f32; B]>() };
                 for l in 0..B {
                     acc[l] = if FUSED { w.mul_add(s[l], acc[l]) } else { acc[l] + w * s[l] };
                 }
             }
         }
         for (r, acc) in acc.iter().enumerate() {
-            out[r * ow + x0..r * ow + x0 + n].copy_from_slice(&acc[..n]);
+            let out = &mut out[r * ow + x0..r * ow + x0 + n];
+            if n == B {
+                // A whole block: a copy of known length (vector stores, not a library call).
+                out.copy_from_slice(acc);
+            } else {
+                out.copy_from_slice(&acc[..n]);
+            }
         }
     }
 
@@ -290,14 +301,16 @@ impl EvalOp for DepthwiseConv {
                 self.channel(p % c, &input[p * h * w..(p + 1) * h * w], d, &mut scratch);
             }
         };
-        let out = output_tensor(&shape, |out: &mut [f32]| {
+        let fill = |out: &mut [f32]| {
             if n * c * macs < SERIAL_MACS {
                 run(0, out);
             } else {
                 par_chunks(out, group * plane, run);
             }
             Ok(())
-        })?;
+        };
+        // SAFETY: every channel's plane is written whole (every row, every column block).
+        let out = unsafe { output_tensor_written(&shape, fill)? };
         Ok(tvec!(out.into_tvalue()))
     }
 }

@@ -156,6 +156,24 @@ fn output_tensor<T: Datum>(shape: &[usize], fill: impl FnOnce(&mut [T]) -> Tract
     Ok(t)
 }
 
+/// As [`output_tensor`] for f32, without zeroing the tensor first (a pass over the whole
+/// output, and page faults on large ones, that a kernel writing every element does not need).
+///
+/// # Safety
+/// `fill` writes every element of the slice it is given before the tensor is read.
+unsafe fn output_tensor_written(
+    shape: &[usize],
+    fill: impl FnOnce(&mut [f32]) -> TractResult<()>,
+) -> TractResult<Tensor> {
+    // SAFETY: every bit pattern is an f32, and the caller's `fill` writes every element.
+    let mut t = unsafe { Tensor::uninitialized_dt(f32::datum_type(), shape)? };
+    {
+        let mut plain = t.try_as_plain_ram_mut()?;
+        fill(plain.as_slice_mut::<f32>()?)?;
+    }
+    Ok(t)
+}
+
 /// Whether a pooling spec's strides or dilations (absent: 1) are all 1.
 fn all_ones(v: &Option<TVec<usize>>) -> bool {
     v.as_ref().is_none_or(|v| v.iter().all(|&s| s == 1))

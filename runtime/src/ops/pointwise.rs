@@ -20,7 +20,7 @@ use tract_nnef::tract_core::ops::math::{Add, Max, Min};
 use tract_nnef::tract_core::ops::nn::HardSwish;
 
 use super::matmul::{const_product, ConstProduct};
-use super::{par_for, same_bits, SyncPtr};
+use super::{output_tensor_written, par_for, same_bits, SyncPtr};
 
 /// Output channels per packed panel (rows of the register tile).
 const MR: usize = 6;
@@ -110,12 +110,8 @@ impl EvalOp for PointwiseConv {
         let x = x.as_slice::<f32>()?;
         ensure!(x.len() == self.k * self.n, "PointwiseConv: {} inputs for k {} x n {}", x.len(), self.k, self.n);
         ensure!(self.output_shape.iter().product::<usize>() == self.m * self.n, "PointwiseConv: output shape");
-        // SAFETY: f32 has no invalid bit patterns, and every element is written below: the
-        // blocks cover the n columns of all m rows.
-        let mut out = unsafe { Tensor::uninitialized_dt(f32::datum_type(), &self.output_shape)? };
-        {
-            let mut plain = out.try_as_plain_ram_mut()?;
-            let dst = SyncPtr(plain.as_slice_mut::<f32>()?.as_mut_ptr());
+        let fill = |out: &mut [f32]| {
+            let dst = SyncPtr(out.as_mut_ptr());
             let blocks = self.n.div_ceil(NB);
             // SAFETY (both closures): blocks write disjoint columns of the m x n output.
             let run = |b: usize| unsafe { self.block(x, b * NB, &dst) };
@@ -124,7 +120,10 @@ impl EvalOp for PointwiseConv {
             } else {
                 par_for(blocks, run);
             }
-        }
+            Ok(())
+        };
+        // SAFETY: the blocks cover the n columns of all m rows: every element is written.
+        let out = unsafe { output_tensor_written(&self.output_shape, fill)? };
         Ok(tvec!(out.into_tvalue()))
     }
 }
