@@ -18,6 +18,60 @@ use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
 use super::conv_lanes::LanePack;
 use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits};
 
+/// `dst = src` (equal lengths), 16 values at a time by fixed-size copies: a row of a small
+/// plane is too short for a library `memcpy` call to pay.
+fn copy_row(src: &[f32], dst: &mut [f32]) {
+    let (mut d, mut s) = (dst.chunks_exact_mut(16), src.chunks_exact(16));
+    for (d, s) in (&mut d).zip(&mut s) {
+        let (d, s): (&mut [f32; 16], &[f32; 16]) = (d.try_into().expect("16"), s.try_into().expect("16"));
+        *d = *s;
+    }
+    d.into_remainder().copy_from_slice(s.remainder());
+}
+
+/// `row`'s values at even positions into `even`, at odd ones into `odd` (`even` holds
+/// `ceil(len / 2)` values, `odd` `floor(len / 2)`).
+fn deinterleave(row: &[f32], even: &mut [f32], odd: &mut [f32]) {
+    assert!(even.len() == row.len().div_ceil(2) && odd.len() == row.len() / 2);
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 {
+        // SAFETY: the CPU has AVX-512F (the table's needs); the lengths are asserted above.
+        done = unsafe { deinterleave_avx512(row, even, odd) };
+    }
+    for ((e, o), pair) in even[done..].iter_mut().zip(odd[done..].iter_mut()).zip(row[2 * done..].chunks_exact(2)) {
+        (*e, *o) = (pair[0], pair[1]);
+    }
+    if row.len() % 2 == 1 {
+        even[even.len() - 1] = row[row.len() - 1];
+    }
+}
+
+/// [`deinterleave`] 32 values at a time (two loads, two permutes); returns how many pairs it
+/// wrote (a multiple of 16), the rest left to the caller.
+///
+/// # Safety
+/// The CPU has AVX-512F; `even` and `odd` hold at least `row.len() / 2` values.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn deinterleave_avx512(row: &[f32], even: &mut [f32], odd: &mut [f32]) -> usize {
+    use std::arch::x86_64::*;
+    let blocks = row.len() / 32;
+    let ie = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+    let io = _mm512_setr_epi32(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
+    for b in 0..blocks {
+        // SAFETY: 32 values of `row` from 32·b (b < len / 32), 16 of `even` and `odd` from
+        // 16·b (they hold len / 2 >= 16·blocks).
+        unsafe {
+            let lo = _mm512_loadu_ps(row.as_ptr().add(32 * b));
+            let hi = _mm512_loadu_ps(row.as_ptr().add(32 * b + 16));
+            _mm512_storeu_ps(even.as_mut_ptr().add(16 * b), _mm512_permutex2var_ps(lo, ie, hi));
+            _mm512_storeu_ps(odd.as_mut_ptr().add(16 * b), _mm512_permutex2var_ps(lo, io, hi));
+        }
+    }
+    16 * blocks
+}
+
 /// Shape of one convolution: input `[N, ci, h, w]`, padding, kernel `kh` x `kw`, `co` outputs.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
 pub struct ConvShape {
@@ -70,35 +124,32 @@ impl ConvShape {
     /// Write one input plane `src` (`[h, w]`) into its zero-padded form `dst` (`stride²` phases
     /// of `[hq, wq]`, [`Self::phase`]); `dst`'s padding is left as it is (zero).
     pub(crate) fn pad_plane(&self, src: &[f32], dst: &mut [f32]) {
-        let wq = self.phase().1;
-        for (y, row) in src.chunks_exact(self.w).enumerate() {
+        let (hq, wq) = self.phase();
+        let w = self.w;
+        if self.stride == 1 {
+            for (y, row) in src.chunks_exact(w).enumerate() {
+                let at = (y + self.pad[0]) * wq + self.pad[1];
+                copy_row(row, &mut dst[at..at + w]);
+            }
+            return;
+        }
+        // Stride 2: a row's even and odd columns go to two phases (disjoint runs), at these
+        // offsets within the row's slot (see `phase_runs`).
+        let p = self.pad[1];
+        let (even_at, odd_at) = ((p & 1) * hq * wq + (p >> 1), ((p + 1) & 1) * hq * wq + ((p + 1) >> 1));
+        let (ne, no) = (w.div_ceil(2), w / 2);
+        for (y, row) in src.chunks_exact(w).enumerate() {
             let yp = y + self.pad[0];
-            if self.stride == 1 {
-                let at = yp * wq + self.pad[1];
-                dst[at..at + self.w].copy_from_slice(row);
-            } else {
-                // Even and odd columns in one pass (they go to two phases: disjoint runs).
-                let mut runs = [(0, 0); 2];
-                for (first, at) in self.phase_runs(yp) {
-                    runs[first] = (at, (row.len() - first).div_ceil(2));
-                }
-                let [(e, ne), (o, no)] = runs;
-                match dst.get_disjoint_mut([e..e + ne, o..o + no]) {
-                    Ok([even, odd]) => {
-                        for ((e, o), pair) in even.iter_mut().zip(odd.iter_mut()).zip(row.chunks_exact(2)) {
-                            (*e, *o) = (pair[0], pair[1]);
-                        }
-                        if row.len() % 2 == 1 {
-                            even[ne - 1] = row[row.len() - 1];
-                        }
-                    }
-                    // Runs of two phases do not overlap (a one-column row's odd run is empty);
-                    // were they to, one run after the other.
-                    Err(_) => {
-                        for (first, at) in self.phase_runs(yp) {
-                            let dst = &mut dst[at..at + (row.len() - first).div_ceil(2)];
-                            dst.iter_mut().zip(row[first..].iter().step_by(2)).for_each(|(d, &v)| *d = v);
-                        }
+            let slot = (yp % 2) * 2 * hq * wq + (yp / 2) * wq;
+            let (e, o) = (slot + even_at, slot + odd_at);
+            match dst.get_disjoint_mut([e..e + ne, o..o + no]) {
+                Ok([even, odd]) => deinterleave(row, even, odd),
+                // Runs of two phases do not overlap (a one-column row's odd run is empty);
+                // were they to, one run after the other.
+                Err(_) => {
+                    for (first, at) in self.phase_runs(yp) {
+                        let dst = &mut dst[at..at + (row.len() - first).div_ceil(2)];
+                        dst.iter_mut().zip(row[first..].iter().step_by(2)).for_each(|(d, &v)| *d = v);
                     }
                 }
             }
@@ -373,6 +424,18 @@ pub(crate) fn direct(s: &ConvShape, groups: usize, input: &[f32], weight: &[f32]
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn deinterleaves_rows_of_every_length() {
+        // Whole blocks of 32 (AVX-512 where the CPU has it), the pairs after them, an odd end.
+        for len in 0..100usize {
+            let row: Vec<f32> = (0..len).map(|i| i as f32).collect();
+            let (mut even, mut odd) = (vec![-1.0; len.div_ceil(2)], vec![-1.0; len / 2]);
+            deinterleave(&row, &mut even, &mut odd);
+            assert!(even.iter().enumerate().all(|(i, &v)| v == (2 * i) as f32), "even, {len}");
+            assert!(odd.iter().enumerate().all(|(i, &v)| v == (2 * i + 1) as f32), "odd, {len}");
+        }
+    }
 
     #[test]
     fn equals_the_direct_sum_with_padding_and_a_partial_channel_block() {
