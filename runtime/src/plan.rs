@@ -12,7 +12,45 @@ use tract_nnef::tract_core::knobs::KnobScope;
 
 use crate::{nnef, Error, PlanManifest, Result, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
 
-type Runnable = Arc<TypedSimplePlan>;
+/// An optimised graph, and whether it runs on the calling thread whatever the thread setting.
+#[derive(Clone)]
+struct Runnable {
+    plan: Arc<TypedSimplePlan>,
+    serial: bool,
+}
+
+/// A graph none of whose operators reaches this many multiply-adds runs on the calling thread
+/// whatever [`set_threads`] says: splitting its layers costs more than it saves. (NanoTrack's
+/// largest layer has 7 M; on a 2-vCPU VM each hand-over to the pool cost 20-100 µs, and two
+/// threads took its search step from 1.9 to 4.3 ms. PRL-Track's layers have 10 to 1000 times
+/// more and keep their threads.)
+const SPLIT_MACS: f64 = (1 << 24) as f64;
+
+impl Runnable {
+    fn new(plan: Arc<TypedSimplePlan>) -> Runnable {
+        let model = plan.model();
+        let largest = model.nodes().iter().map(|n| node_flop(model, n) / 2.0).fold(0.0, f64::max);
+        Runnable { serial: largest < SPLIT_MACS, plan }
+    }
+
+    /// `f` with tract's executor for this graph: the calling thread alone when `serial`.
+    fn scope<R>(&self, f: impl FnOnce() -> R) -> R {
+        use tract_linalg::multithread::{multithread_tract_scope, Executor};
+        if self.serial {
+            multithread_tract_scope(Executor::SingleThread, f)
+        } else {
+            f()
+        }
+    }
+
+    fn run(&self, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        self.scope(|| self.plan.run(inputs))
+    }
+
+    fn model(&self) -> &TypedModel {
+        self.plan.model()
+    }
+}
 
 /// A loaded, optimised plan. Cloning it is cheap (the optimised graphs are shared), so that
 /// several trackers (targets) can run one plan, on several threads at once.
@@ -229,6 +267,12 @@ impl Plan {
             .collect()
     }
 
+    /// Whether the template and the search graph run on the calling thread whatever the thread
+    /// setting (none of their operators is large enough to split over threads).
+    pub fn single_threaded(&self) -> (bool, bool) {
+        (self.template.serial, self.search.serial)
+    }
+
     /// tract's per-node profile of the search graph: each node timed over `runs` runs, slowest
     /// first.
     pub fn profile_search(&self, x: &[f32], zf: &TemplateFeatures, runs: usize) -> Result<Vec<NodeTime>> {
@@ -259,16 +303,18 @@ fn profile(
     let runs = runs.max(1);
     let model = plan.model();
     let mut totals = vec![std::time::Duration::ZERO; model.nodes().len()];
-    let mut state = TypedSimpleState::new(plan).map_err(|e| run_err(graph, e))?;
+    let mut state = TypedSimpleState::new(&plan.plan).map_err(|e| run_err(graph, e))?;
     for _ in 0..runs {
-        state
-            .run_plan_with_eval(inputs()?, |ctx, st, node, inputs| {
+        let inputs = inputs()?;
+        plan.scope(|| {
+            state.run_plan_with_eval(inputs, |ctx, st, node, inputs| {
                 let t = std::time::Instant::now();
                 let r = tract_nnef::tract_core::plan::eval(ctx, st, node, inputs);
                 totals[node.id] += t.elapsed();
                 r
             })
-            .map_err(|e| run_err(graph, e))?;
+        })
+        .map_err(|e| run_err(graph, e))?;
     }
     let mut out: Vec<NodeTime> = model
         .nodes()
@@ -364,7 +410,7 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
                 crate::accelerate(&mut model)?;
             }
             model.optimize()?; // codegen only: the model is decluttered already
-            TypedSimplePlan::new(model)
+            TypedSimplePlan::new(model).map(Runnable::new)
         })
     };
     crate::catch_quietly(optimise)

@@ -314,6 +314,15 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     if !prl_runtime::own_operators() {
         println!("operators: tract's alone (PRL_OPS=tract)");
     }
+    let serial = match tracker.plan().single_threaded() {
+        (true, true) => "template and search graphs",
+        (true, false) => "template graph",
+        (false, true) => "search graph",
+        (false, false) => "",
+    };
+    if threads > 1 && !serial.is_empty() {
+        println!("{serial} on one thread (no layer large enough to split over threads)");
+    }
     println!("{:<18} {:>10} {:>10}", "stage", "median ms", "p90 ms");
     for s in &report.stages {
         println!("{:<18} {:>10.2} {:>10.2}", s.stage, s.median_ms, s.p90_ms);

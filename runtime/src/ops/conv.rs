@@ -14,6 +14,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
+use super::act::{Activation, Tail};
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
 use super::conv_lanes::LanePack;
 use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits};
@@ -184,6 +185,10 @@ pub struct PackedConv {
     weights: Arc<Vec<f32>>,
     lanes: Option<Arc<LanePack>>,
     bias: Arc<Vec<f32>>,
+    /// Applied to the output as it is written (the graph's activation after the convolution).
+    act: Activation,
+    /// The output's shape where the fused nodes end in another shape than `[n, co, oh, ow]`.
+    reshape: Option<TVec<usize>>,
 }
 
 impl std::fmt::Debug for PackedConv {
@@ -201,6 +206,8 @@ impl PartialEq for PackedConv {
             && same_bits(&self.weights, &other.weights)
             && same_bits(lanes(self), lanes(other))
             && same_bits(&self.bias, &other.bias)
+            && self.act == other.act
+            && self.reshape == other.reshape
     }
 }
 
@@ -243,7 +250,14 @@ impl PackedConv {
         let (oh, ow) = shape.out();
         let offsets = shape.tap_offsets(shape.ci);
         let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp: wq, oh, ow };
-        Ok(PackedConv { shape, layout: Arc::new(layout), weights: Arc::new(packed), lanes, bias: Arc::new(bias) })
+        let (weights, bias) = (Arc::new(packed), Arc::new(bias));
+        Ok(PackedConv { shape, layout: Arc::new(layout), weights, lanes, bias, act: Activation::NONE, reshape: None })
+    }
+
+    /// The convolution followed by the nodes of `tail` ([`super::act::tail`]).
+    pub(crate) fn fused(self, tail: &Tail) -> TractResult<PackedConv> {
+        ensure!(tail.bias.is_none(), "PackedConv: a convolution has its own bias");
+        Ok(PackedConv { act: tail.act, reshape: tail.reshaped(), ..self })
     }
 
     /// The convolution's shape.
@@ -265,8 +279,10 @@ impl Op for PackedConv {
             None => format!("tiles of {ROWS} channels"),
         };
         Ok(vec![format!(
-            "{kh}x{kw} kernel, stride {}, {ci} -> {co} channels, pad {:?}, {taps} taps, {tile}",
-            s.stride, s.pad
+            "{kh}x{kw} kernel, stride {}, {ci} -> {co} channels, pad {:?}, {taps} taps, {tile}, activation {}",
+            s.stride,
+            s.pad,
+            self.act.describe()
         )])
     }
 
@@ -297,22 +313,31 @@ impl EvalOp for PackedConv {
                 }
                 if let Some(lanes) = &self.lanes {
                     lanes.run(&self.layout, &padded, &self.bias, dst);
+                    self.act.apply_all(dst);
                     continue;
                 }
                 par_chunks(dst, ROWS * plane, |b, out| {
                     let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
                     let bias: &[f32; ROWS] = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
                     channel_block(&self.layout, &padded, weights, bias, out);
+                    self.act.apply_all(out);
                 });
             }
             Ok(())
         })?;
+        let out = match &self.reshape {
+            Some(shape) => out.into_shape(shape)?,
+            None => out,
+        };
         Ok(tvec!(out.into_tvalue()))
     }
 }
 
 impl TypedOp for PackedConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        if let Some(shape) = &self.reshape {
+            return Ok(tvec!(f32::fact(shape)));
+        }
         let (oh, ow) = self.shape.out();
         Ok(tvec!(f32::fact([inputs[0].shape[0].clone(), self.shape.co.into(), oh.into(), ow.into()])))
     }

@@ -13,6 +13,7 @@ use std::sync::Arc;
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
+use super::act::{Activation, Tail};
 use super::conv::{ConstConv, ConvShape};
 use super::{output_tensor_written, par_chunks, same_bits};
 
@@ -35,6 +36,10 @@ pub struct DepthwiseConv {
     offsets: Arc<Vec<usize>>,
     weights: Arc<Vec<f32>>,
     bias: Arc<Vec<f32>>,
+    /// Applied to each channel's output once written (the graph's activation after it).
+    act: Activation,
+    /// The output's shape where the fused nodes end in another shape than the convolution's.
+    reshape: Option<TVec<usize>>,
 }
 
 impl std::fmt::Debug for DepthwiseConv {
@@ -49,6 +54,8 @@ impl PartialEq for DepthwiseConv {
             && self.batch == other.batch
             && same_bits(&self.weights, &other.weights)
             && same_bits(&self.bias, &other.bias)
+            && self.act == other.act
+            && self.reshape == other.reshape
     }
 }
 
@@ -65,7 +72,13 @@ impl DepthwiseConv {
         let bias = (0..c).map(|o| if bias.len() == 1 { bias[0] } else { bias[o] }).collect();
         let offsets = Arc::new(shape.tap_offsets(1));
         let (weights, bias) = (Arc::new(weight.to_vec()), Arc::new(bias));
-        Ok(DepthwiseConv { shape, batch, offsets, weights, bias })
+        Ok(DepthwiseConv { shape, batch, offsets, weights, bias, act: Activation::NONE, reshape: None })
+    }
+
+    /// The convolution followed by the nodes of `tail` ([`super::act::tail`]).
+    pub(crate) fn fused(self, tail: &Tail) -> TractResult<DepthwiseConv> {
+        ensure!(tail.bias.is_none(), "DepthwiseConv: a convolution has its own bias");
+        Ok(DepthwiseConv { act: tail.act, reshape: tail.reshaped(), ..self })
     }
 
     /// A zeroed scratch plane for [`Self::channel`]: the padded input (its phases with stride
@@ -84,6 +97,7 @@ impl DepthwiseConv {
         let taps = s.kh * s.kw;
         let (_, ow) = s.out();
         kernel::rows(scratch, wq, &self.offsets, &self.weights[ch * taps..(ch + 1) * taps], self.bias[ch], dst, ow);
+        self.act.apply_all(dst);
     }
 }
 
@@ -276,7 +290,15 @@ impl Op for DepthwiseConv {
 
     fn info(&self) -> TractResult<Vec<String>> {
         let s = &self.shape;
-        Ok(vec![format!("{}x{} kernel, stride {}, {} channels, pad {:?}", s.kh, s.kw, s.stride, s.ci, s.pad)])
+        Ok(vec![format!(
+            "{}x{} kernel, stride {}, {} channels, pad {:?}, activation {}",
+            s.kh,
+            s.kw,
+            s.stride,
+            s.ci,
+            s.pad,
+            self.act.describe()
+        )])
     }
 
     op_as_typed_op!();
@@ -321,12 +343,19 @@ impl EvalOp for DepthwiseConv {
         };
         // SAFETY: every channel's plane is written whole (every row, every column block).
         let out = unsafe { output_tensor_written(&shape, fill)? };
+        let out = match &self.reshape {
+            Some(shape) => out.into_shape(shape)?,
+            None => out,
+        };
         Ok(tvec!(out.into_tvalue()))
     }
 }
 
 impl TypedOp for DepthwiseConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        if let Some(shape) = &self.reshape {
+            return Ok(tvec!(f32::fact(shape)));
+        }
         let (oh, ow) = self.shape.out();
         let (c, oh, ow): (TDim, TDim, TDim) = (self.shape.co.into(), oh.into(), ow.into());
         Ok(tvec!(if self.batch { f32::fact([inputs[0].shape[0].clone(), c, oh, ow]) } else { f32::fact([c, oh, ow]) }))

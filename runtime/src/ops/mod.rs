@@ -9,6 +9,7 @@
 //! on disk keep tract's
 //! standard operators, so the choice is made on the machine that runs the plan.
 
+mod act;
 mod attention;
 mod binary;
 mod conv;
@@ -91,12 +92,30 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
             continue;
         }
         let node = model.node(id);
-        // A packed convolution holds its weights and bias: it reads only the data input.
+        // The nodes an operator stands for, in order: it replaces the last (by default the
+        // node itself).
+        let mut chain = vec![id];
+        // Convolutions hold their weights and bias, and take in the activation after them:
+        // they read only the data input.
         let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = conv::packed(model, node)? {
             done.convolutions += 1;
+            let op = match act::tail(model, node, None)? {
+                Some(t) => {
+                    chain = t.chain.clone();
+                    op.fused(&t)?
+                }
+                None => op,
+            };
             (Box::new(op), tvec![node.inputs[0]])
         } else if let Some(op) = dwconv::depthwise(model, node)? {
             done.depthwise += 1;
+            let op = match act::tail(model, node, None)? {
+                Some(t) => {
+                    chain = t.chain.clone();
+                    op.fused(&t)?
+                }
+                None => op,
+            };
             (Box::new(op), tvec![node.inputs[0]])
         } else if let Some(op) = dwconv_hwc::depthwise_hwc(model, node)? {
             done.depthwise += 1;
@@ -116,13 +135,10 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         } else if let Some((op, x)) = matmul::const_matmul(model, node)? {
             done.matmuls += 1;
             (Box::new(op), tvec![x])
-        } else if let Some((op, x, chain)) = pointwise::pointwise(model, node)? {
+        } else if let Some((op, x, c)) = pointwise::pointwise(model, node)? {
             done.pointwise += 1;
-            let last = *chain.last().expect("the einsum at least");
-            fused.extend(chain);
-            let patch = TypedModelPatch::replace_single_op(model, model.node(last), &[x], op)?;
-            patch.apply(model)?;
-            continue;
+            chain = c;
+            (Box::new(op), tvec![x])
         } else if let Some(op) = binary::broadcast_binary(model, node)? {
             done.broadcasts += 1;
             (Box::new(op), node.inputs.iter().copied().collect())
@@ -135,8 +151,20 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         } else {
             continue;
         };
-        let patch = TypedModelPatch::replace_single_op(model, node, &inputs, op)?;
+        // The operator keeps the name of the first node it stands for (the convolution's, not
+        // its activation's) and takes the place of the last.
+        let last = *chain.last().expect("the node at least");
+        let mut patch = TypedModelPatch::default();
+        let taps = patch.taps(model, &inputs)?;
+        let wires = patch.wire_node(&node.name, op, &taps)?;
+        for (ix, &w) in wires.iter().enumerate() {
+            patch.shunt_outside(model, OutletId::new(last, ix), w)?;
+        }
+        for &id in &chain {
+            patch.obliterate(id)?;
+        }
         patch.apply(model)?;
+        fused.extend(chain);
     }
     if done != Accelerated::default() {
         model.compact()?;

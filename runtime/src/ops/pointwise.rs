@@ -14,11 +14,8 @@
 use std::sync::Arc;
 
 use tract_nnef::internal::*;
-use tract_nnef::tract_core::ops::binary::TypedBinOp;
-use tract_nnef::tract_core::ops::element_wise::ElementWiseOp;
-use tract_nnef::tract_core::ops::math::{Add, Max, Min};
-use tract_nnef::tract_core::ops::nn::HardSwish;
 
+use super::act::{tail, Activation, Tail};
 use super::matmul::{const_product, ConstProduct};
 use super::{output_tensor_written, par_for, same_bits, SyncPtr};
 
@@ -28,34 +25,6 @@ const MR: usize = 6;
 const NB: usize = 64;
 /// Products under this many multiply-adds run on the calling thread.
 const SERIAL_MACS: usize = 1 << 20;
-
-/// What follows the product: the bias, then `min(max(v, lo), hi)`, then tract's hard-swish
-/// `v · clamp(v + 3, 0, 6) · (1/6)` when `hard_swish`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Activation {
-    lo: f32,
-    hi: f32,
-    hard_swish: bool,
-}
-
-impl Activation {
-    const NONE: Activation = Activation { lo: f32::NEG_INFINITY, hi: f32::INFINITY, hard_swish: false };
-
-    fn clamps(&self) -> bool {
-        self.lo != f32::NEG_INFINITY || self.hi != f32::INFINITY
-    }
-
-    /// The activation of one value (the scalar form every path computes).
-    #[inline(always)]
-    fn apply(&self, v: f32) -> f32 {
-        let v = if self.clamps() { v.max(self.lo).min(self.hi) } else { v };
-        if self.hard_swish {
-            v * (v + 3.0).clamp(0.0, 6.0) * (1.0 / 6.0)
-        } else {
-            v
-        }
-    }
-}
 
 /// `out(m, n) = act(bias(m) + Σ_k w(m, k) · x(k, n))` on `x` laid out `[k][n]` and `out`
 /// `[m][n]` (a 1x1 convolution of one image, channels first).
@@ -89,12 +58,7 @@ impl Op for PointwiseConv {
     }
 
     fn info(&self) -> TractResult<Vec<String>> {
-        let act = match (self.act.clamps(), self.act.hard_swish) {
-            (false, false) => "none".to_string(),
-            (true, false) => format!("clamp {}..{}", self.act.lo, self.act.hi),
-            (false, true) => "hard-swish".to_string(),
-            (true, true) => format!("clamp {}..{}, hard-swish", self.act.lo, self.act.hi),
-        };
+        let act = self.act.describe();
         Ok(vec![format!("m {}, n {}, k {}, activation {act}", self.m, self.n, self.k)])
     }
 
@@ -321,50 +285,13 @@ unsafe fn tile_generic<const FUSED: bool>(
     }
 }
 
-/// The sole consumer of `node`'s single output, if it has exactly one and that output is not
-/// one of the model's.
-fn sole_consumer<'m>(model: &'m TypedModel, node: &TypedNode) -> Option<&'m TypedNode> {
-    let outlet = OutletId::new(node.id, 0);
-    match (&node.outputs[..], model.output_outlets().ok()?.contains(&outlet)) {
-        ([o], false) if o.successors.len() == 1 => Some(model.node(o.successors[0].node)),
-        _ => None,
-    }
-}
-
-/// The constant other input of a binary `node` whose other input is `from`.
-fn other_const(model: &TypedModel, node: &TypedNode, from: OutletId) -> Option<Arc<Tensor>> {
-    let [a, b] = node.inputs[..] else { return None };
-    let other = if a == from {
-        b
-    } else if b == from {
-        a
-    } else {
-        return None;
-    };
-    model.outlet_fact(other).ok()?.konst.clone()
-}
-
-/// The bias of a per-channel `Add` on an `[.., m, ..][n]`-shaped value of `shape`, from its
-/// constant: `m` values, broadcast over the trailing axes that make up `n`.
-fn bias_of(konst: &Tensor, shape: &[usize], m: usize, n: usize) -> Option<Vec<f32>> {
-    if konst.datum_type() != f32::datum_type() || konst.len() != m || konst.rank() > shape.len() {
-        return None;
-    }
-    let pad = shape.len() - konst.rank();
-    let c = |a: usize| if a < pad { 1 } else { konst.shape()[a - pad] };
-    // The axes from `split` on are the positions; those before it the channels.
-    let split = (0..=shape.len()).find(|&j| shape[j..].iter().product::<usize>() == n)?;
-    let fits = (0..shape.len()).all(|a| if a < split { c(a) == shape[a] } else { c(a) == 1 });
-    fits.then(|| konst.try_as_plain_ram().ok()?.as_slice::<f32>().ok().map(<[f32]>::to_vec)).flatten()
-}
-
 /// A [`PointwiseConv`] for the einsum `node` and what follows it; returns the op, its data
 /// input and the nodes it stands for, the last of which it replaces.
 pub(crate) fn pointwise(
     model: &TypedModel,
     node: &TypedNode,
 ) -> TractResult<Option<(PointwiseConv, OutletId, Vec<usize>)>> {
-    let Some(ConstProduct { k, m, n, konst, data, output_shape }) = const_product(model, node)? else {
+    let Some(ConstProduct { k, m, n, konst, data, .. }) = const_product(model, node)? else {
         return Ok(None);
     };
     // Channels first: positions contiguous in the data and the output, rows of n.
@@ -374,46 +301,7 @@ pub(crate) fn pointwise(
     if model.outlet_fact(data)?.shape.as_concrete().is_none_or(|s| s.iter().product::<usize>() != k.0 * n.0) {
         return Ok(None);
     }
-    let (mut bias, mut act, mut chain, mut shape) = (None, Activation::NONE, vec![node.id], output_shape);
-    let mut last = node;
-    while let Some(next) = sole_consumer(model, last) {
-        let from = OutletId::new(last.id, 0);
-        let bin = next.op_as::<TypedBinOp>();
-        if next.op_as::<AxisOp>().is_some() && !act.hard_swish {
-            // A reshape: the same values in the same order.
-        } else if bin.is_some_and(|b| b.0.is::<Add>()) && bias.is_none() && act == Activation::NONE {
-            let Some(b) = other_const(model, next, from).and_then(|c| bias_of(&c, &shape, m.0, n.0)) else { break };
-            bias = Some(b);
-        } else if let Some(b) = bin.filter(|b| (b.0.is::<Max>() || b.0.is::<Min>()) && !act.hard_swish) {
-            let Some(c) = other_const(model, next, from).filter(|c| c.len() == 1) else { break };
-            let Ok(c) = c.cast_to_scalar::<f32>() else { break };
-            let is_max = b.0.is::<Max>();
-            let (bound, other) = if is_max { (&mut act.lo, act.hi) } else { (&mut act.hi, act.lo) };
-            // One bound of each kind, lo <= hi: then the order they come in does not matter.
-            if bound.is_finite() || c.is_nan() || (if is_max { c > other } else { c < other }) {
-                break;
-            }
-            *bound = c;
-        } else if next.op_as::<ElementWiseOp>().is_some_and(|e| e.0.is::<HardSwish>()) && !act.hard_swish {
-            act.hard_swish = true;
-        } else {
-            break;
-        }
-        if next.outputs[0].fact.datum_type != f32::datum_type() {
-            break;
-        }
-        shape = match next.outputs[0].fact.shape.as_concrete() {
-            Some(s) => s.iter().copied().collect(),
-            None => break,
-        };
-        chain.push(next.id);
-        last = next;
-    }
-    // Trailing reshapes stay tract's (the op's output takes the shape of the last fused node).
-    while chain.len() > 1 && model.node(*chain.last().expect("non-empty")).op_as::<AxisOp>().is_some() {
-        chain.pop();
-    }
-    let last = model.node(*chain.last().expect("non-empty"));
+    let Some(Tail { bias, act, chain, shape }) = tail(model, node, Some((m.0, n.0)))? else { return Ok(None) };
     let w = konst.try_as_plain_ram()?;
     let w = w.as_slice::<f32>()?;
     let mut panels = vec![0f32; m.0.div_ceil(MR) * MR * k.0];
@@ -429,7 +317,7 @@ pub(crate) fn pointwise(
         m: m.0,
         k: k.0,
         n: n.0,
-        output_shape: last.outputs[0].fact.shape.as_concrete().expect("checked above").iter().copied().collect(),
+        output_shape: shape,
     };
     Ok(Some((op, data, chain)))
 }
@@ -437,6 +325,7 @@ pub(crate) fn pointwise(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tract_nnef::tract_core::ops::binary::TypedBinOp;
     use tract_nnef::tract_core::ops::einsum::EinSum;
     use tract_nnef::tract_core::ops::math::{add, max, min};
     use tract_nnef::tract_core::ops::nn::hard_swish;
