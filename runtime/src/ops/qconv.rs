@@ -60,6 +60,8 @@ pub struct PackedQConv {
     /// The weights for VNNI tiles with the channels in the lanes (32 channels or more, no
     /// AMX), used instead of `weights` on VNNI.
     lanes: Option<Arc<QLanePack>>,
+    /// The data has a batch axis (NCHW); else it is CHW (tract drops a batch axis of 1).
+    batch: bool,
 }
 
 impl std::fmt::Debug for PackedQConv {
@@ -74,7 +76,7 @@ impl PartialEq for PackedQConv {
             && self.weights == other.weights
             && self.offset == other.offset
             && same_bits(&self.scale, &other.scale)
-            && (self.x0, self.y0, self.out_dt) == (other.x0, other.y0, other.out_dt)
+            && (self.x0, self.y0, self.out_dt, self.batch) == (other.x0, other.y0, other.out_dt, other.batch)
             && self.amx.is_some() == other.amx.is_some()
             && self.lanes.as_ref().map(|l| l.values()) == other.lanes.as_ref().map(|l| l.values())
     }
@@ -108,7 +110,11 @@ impl EvalOp for PackedQConv {
         let input = args_1!(inputs);
         let s = &self.shape;
         ensure!(input.datum_type().unquantized() == u8::datum_type(), "PackedQConv: input is {:?}", input.datum_type());
-        let &[n, ci, h, w] = input.shape() else { bail!("PackedQConv: input {:?} is not rank 4", input.shape()) };
+        let (n, ci, h, w) = match (self.batch, input.shape()) {
+            (true, &[n, ci, h, w]) => (n, ci, h, w),
+            (false, &[ci, h, w]) => (1, ci, h, w),
+            _ => bail!("PackedQConv: input {:?} for {s:?}", input.shape()),
+        };
         ensure!((ci, h, w) == (s.ci, s.h, s.w), "PackedQConv: input {:?} for {s:?}", input.shape());
         let input = input.try_as_plain_ram()?;
         // SAFETY: the datum type is u8, possibly with quantisation parameters (checked above).
@@ -122,7 +128,8 @@ impl EvalOp for PackedQConv {
             // SAFETY: on x86 the op is only made where the CPU has AVX-512 ([`packed_q`]).
             unsafe { requantise(sums, self.offset[o] + flip * self.wsum[o], self.scale[o], self.y0, bytes) }
         };
-        let mut t = output_tensor(&[n, s.co, oh, ow], |out: &mut [u8]| {
+        let shape: TVec<usize> = if self.batch { tvec![n, s.co, oh, ow] } else { tvec![s.co, oh, ow] };
+        let mut t = output_tensor(&shape, |out: &mut [u8]| {
             for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
                 match &self.amx {
                     Some(amx) => amx.run(s, src, self.x0, (&self.offset, &self.scale, self.y0), dst),
@@ -216,6 +223,9 @@ impl PackedQConv {
 impl TypedOp for PackedQConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
         let (oh, ow) = self.shape.out();
+        if !self.batch {
+            return Ok(tvec!(self.out_dt.fact([self.shape.co, oh, ow])));
+        }
         Ok(tvec!(self.out_dt.fact([inputs[0].shape[0].clone(), self.shape.co.into(), oh.into(), ow.into()])))
     }
 
@@ -223,7 +233,8 @@ impl TypedOp for PackedQConv {
         let s = &self.shape;
         let (oh, ow) = s.out();
         let macs = s.co * oh * ow * s.ci * s.kh * s.kw;
-        Ok(tvec!((Cost::FMA(i32::datum_type()), inputs[0].shape[0].clone() * macs)))
+        let n = if self.batch { inputs[0].shape[0].clone() } else { 1.into() };
+        Ok(tvec!((Cost::FMA(i32::datum_type()), n * macs)))
     }
 
     as_op!();
@@ -277,7 +288,10 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
         return Ok(None);
     }
     let facts = model.node_input_facts(node.id)?;
-    let Some(shape) = conv_shape(node, &facts).or_else(|| pointwise_shape(node, &facts)) else { return Ok(None) };
+    let Some((shape, batch)) = conv_shape(node, &facts).map(|s| (s, true)).or_else(|| pointwise_shape(node, &facts))
+    else {
+        return Ok(None);
+    };
     // Both ops take x, the weights, the bias, then x0, x_scale, w0, w_scale, y0, y_scale.
     let out_dt = node.outputs[0].fact.datum_type;
     let plain = facts.len() == 9
@@ -306,7 +320,7 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     // SAFETY: the kernel's datum type is i8, possibly with quantisation parameters (checked).
     let kernel = unsafe { kernel.as_slice_unchecked::<i8>() };
     let q = QuantParams { x0, x_scale: x_scale[0], k_scale, y0, y_scale: y_scale[0] };
-    Ok(Some(PackedQConv::new(shape, kernel, &bias, q, out_dt)?))
+    Ok(Some(PackedQConv { batch, ..PackedQConv::new(shape, kernel, &bias, q, out_dt)? }))
 }
 
 /// The shape of a quantised NCHW `Conv` with OIHW weights, one group, stride 1 or 2 and no
@@ -338,7 +352,7 @@ fn conv_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<ConvShape> {
 /// (whatever its axis letters), with constant `[O, I]` weights and an i32 bias, as a 1x1
 /// [`ConvShape`]. (NanoTrack's pointwise layers come as `IHW,OI,O->OHW`, without the batch
 /// axis, and stay with tract's integer products; PackedQConv was not measured on them.)
-fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<ConvShape> {
+fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, bool)> {
     let einsum = node.op_as::<EinSum>()?;
     einsum.q_params?;
     let expr = einsum.axes.to_string();
@@ -346,20 +360,30 @@ fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<ConvShape> 
     let terms: Vec<Vec<char>> = inputs.split(',').map(|t| t.chars().collect()).collect();
     let out: Vec<char> = output.chars().collect();
     let [x, w, b, ..] = terms.as_slice() else { return None };
-    let pointwise = x.len() == 4
+    // NCHW, or CHW (a batch axis of 1 dropped, as in NanoTrack's graphs): `nihw,oi->nohw`.
+    let batch = x.len() == 4;
+    let (c, hw) = if batch { (1, 2) } else { (0, 1) };
+    let pointwise = (x.len() == 4 || x.len() == 3)
         && w.len() == 2
-        && out.len() == 4
-        && (out[0], out[1], out[2], out[3]) == (x[0], w[0], x[2], x[3])
-        && w[1] == x[1]
-        && !out.contains(&x[1])
+        && out.len() == x.len()
+        && (!batch || out[0] == x[0])
+        && out[c] == w[0]
+        && out[hw..] == x[hw..]
+        && w[1] == x[c]
+        && !out.contains(&x[c])
         && (b.is_empty() || b.as_slice() == [w[0]])
         && terms[3..].iter().all(|t| t.is_empty() || t.as_slice() == [w[0]]);
     if !pointwise || facts.get(2)?.datum_type != i32::datum_type() {
         return None;
     }
-    let &[_, ci, h, w] = facts.first()?.shape.as_concrete()? else { return None };
+    let dims = facts.first()?.shape.as_concrete()?;
+    let (ci, h, w) = match dims {
+        &[_, ci, h, w] if batch => (ci, h, w),
+        &[ci, h, w] if !batch => (ci, h, w),
+        _ => return None,
+    };
     let &[co, wi] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
-    (wi == ci).then_some(ConvShape { ci, h, w, co, kh: 1, kw: 1, pad: [0; 4], stride: 1 })
+    (wi == ci).then_some((ConvShape { ci, h, w, co, kh: 1, kw: 1, pad: [0; 4], stride: 1 }, batch))
 }
 
 /// Zero points and scales of a quantised convolution (weights: zero point 0).
@@ -440,6 +464,7 @@ impl PackedQConv {
             out_dt,
             amx,
             lanes,
+            batch: true,
         })
     }
 }
@@ -534,8 +559,8 @@ mod tests {
     /// a [`PackedQConv`] giving tract's own bytes; other einsums stay.
     #[test]
     fn the_einsum_of_a_pointwise_convolution_gives_tract_s_bytes() {
-        let run = |expr: &str, x_shape: [usize; 4], w_shape: &[usize], made: usize| {
-            let (ci, co) = (x_shape[1], w_shape[0]);
+        let run = |expr: &str, x_shape: &[usize], w_shape: &[usize], made: usize| {
+            let (ci, co) = (x_shape[x_shape.len() - 3], w_shape[0]);
             let mut model = TypedModel::default();
             let x = model.add_source("x", u8::fact(x_shape)).unwrap();
             let w: Vec<i8> = (0..w_shape.iter().product()).map(|i: usize| ((i * 104729) % 255) as i32 as i8).collect();
@@ -559,7 +584,7 @@ mod tests {
             let y = model.wire_node("embed", op, &inputs).unwrap();
             model.select_output_outlets(&y).unwrap();
             let n: usize = x_shape.iter().product();
-            let input = Tensor::from_shape(&x_shape, &(0..n).map(|i| ((i * 7919) % 256) as u8).collect::<Vec<_>>());
+            let input = Tensor::from_shape(x_shape, &(0..n).map(|i| ((i * 7919) % 256) as u8).collect::<Vec<_>>());
             let input = input.unwrap().into_tvalue();
             let reference = model.clone();
             let done = crate::ops::accelerate(&mut model).unwrap();
@@ -581,10 +606,13 @@ mod tests {
             return;
         }
         // HMG's form (192 channels, 11x11 tokens) with other letters, and 40 outputs (32-channel tiles).
-        run("aicd,bi,b,,,,,,->abcd", [1, 192, 11, 11], &[192, 192], 1);
-        run("NIHW,OI,O,,,,,,->NOHW", [1, 24, 5, 7], &[40, 24], 1);
+        run("aicd,bi,b,,,,,,->abcd", &[1, 192, 11, 11], &[192, 192], 1);
+        run("NIHW,OI,O,,,,,,->NOHW", &[1, 24, 5, 7], &[40, 24], 1);
+        // NanoTrack's form: the batch axis dropped (CHW).
+        run("IHW,OI,O,,,,,,->OHW", &[24, 32, 32], &[88, 24], 1);
         // Not a pointwise convolution (the weights' axes the other way round): left alone.
-        run("NIHW,IO,O,,,,,,->NOHW", [1, 24, 5, 7], &[24, 40], 0);
+        run("NIHW,IO,O,,,,,,->NOHW", &[1, 24, 5, 7], &[24, 40], 0);
+        run("IHW,IO,O,,,,,,->OHW", &[24, 5, 7], &[24, 40], 0);
     }
 
     #[test]
