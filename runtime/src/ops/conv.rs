@@ -17,7 +17,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 use super::act::{Activation, Tail};
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
 use super::conv_lanes::LanePack;
-use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits};
+use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits};
 
 /// `dst = src` (equal lengths), 16 values at a time by fixed-size copies: a row of a small
 /// plane is too short for a library `memcpy` call to pay.
@@ -28,6 +28,34 @@ fn copy_row(src: &[f32], dst: &mut [f32]) {
         *d = *s;
     }
     d.into_remainder().copy_from_slice(s.remainder());
+}
+
+/// `rows` rows of `w` values from `src` (consecutive) to `dst` (`ld` apart), 16 values a step,
+/// the last of each row masked: no call and no bounds check per row (a depthwise layer pads
+/// thousands of rows of 8 to 32 values).
+///
+/// # Safety
+/// The CPU has AVX-512F; `src` holds `rows · w` values, and `dst + y·ld .. + w` is writable
+/// for every row `y`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn copy_rows_avx512(src: *const f32, w: usize, rows: usize, dst: *mut f32, ld: usize) {
+    use std::arch::x86_64::*;
+    let (full, rest) = (w / 16, w % 16);
+    let mask: __mmask16 = ((1u32 << rest) - 1) as __mmask16;
+    for y in 0..rows {
+        // SAFETY: within row y of `src` and its slot in `dst` (the caller's promise).
+        unsafe {
+            let (s, d) = (src.add(y * w), dst.add(y * ld));
+            for k in 0..full {
+                _mm512_storeu_ps(d.add(16 * k), _mm512_loadu_ps(s.add(16 * k)));
+            }
+            if rest > 0 {
+                let v = _mm512_maskz_loadu_ps(mask, s.add(16 * full));
+                _mm512_mask_storeu_ps(d.add(16 * full), mask, v);
+            }
+        }
+    }
 }
 
 /// `row`'s values at even positions into `even`, at odd ones into `odd` (`even` holds
@@ -128,6 +156,16 @@ impl ConvShape {
         let (hq, wq) = self.phase();
         let w = self.w;
         if self.stride == 1 {
+            #[cfg(target_arch = "x86_64")]
+            if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 && w > 0 {
+                let at = self.pad[0] * wq + self.pad[1];
+                let rows = src.len() / w;
+                assert!(rows == 0 || at + (rows - 1) * wq + w <= dst.len(), "rows within the padded plane");
+                // SAFETY: the CPU has AVX-512F; every row's `w` values are within `src`
+                // (`rows · w <= src.len()`) and its slot within `dst` (asserted above).
+                unsafe { copy_rows_avx512(src.as_ptr(), w, rows, dst.as_mut_ptr().add(at), wq) };
+                return;
+            }
             for (y, row) in src.chunks_exact(w).enumerate() {
                 let at = (y + self.pad[0]) * wq + self.pad[1];
                 copy_row(row, &mut dst[at..at + w]);
@@ -305,7 +343,7 @@ impl EvalOp for PackedConv {
         let taps = self.layout.taps.len();
         let phases = s.stride * s.stride;
         let mut padded = vec![0f32; ci * phases * hq * wq + MAX_PX + wq];
-        let out = output_tensor(&[n, s.co, oh, ow], |out: &mut [f32]| {
+        let fill = |out: &mut [f32]| {
             for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
                 let plane_in = phases * hq * wq;
                 for (c, src) in src.chunks_exact(h * w).enumerate() {
@@ -324,7 +362,10 @@ impl EvalOp for PackedConv {
                 });
             }
             Ok(())
-        })?;
+        };
+        // SAFETY: every output is written: the tiles cover every position of every row, each
+        // channel block (or lanes' block) writes all its channels.
+        let out = unsafe { output_tensor_written(&[n, s.co, oh, ow], fill)? };
         let out = match &self.reshape {
             Some(shape) => out.into_shape(shape)?,
             None => out,
