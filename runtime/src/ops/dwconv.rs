@@ -132,7 +132,7 @@ mod kernel {
     /// accumulators alone). The same sums in the same order as the AVX paths: the same bits.
     #[cfg(target_arch = "aarch64")]
     pub(super) fn rows_neon(src: &[f32], wq: usize, offs: &[usize], ws: &[f32], bias: f32, dst: &mut [f32], ow: usize) {
-        rows_blocked::<true, 16, 4>(src, wq, offs, ws, bias, dst, ow)
+        rows_blocked::<true, 16>(src, wq, offs, ws, bias, dst, ow)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -146,8 +146,7 @@ mod kernel {
         dst: &mut [f32],
         ow: usize,
     ) {
-        // 32 registers: maps 16 columns wide go eight rows at a time (eight accumulators).
-        rows_blocked::<true, 32, 8>(src, wq, offs, ws, bias, dst, ow)
+        rows_generic::<true>(src, wq, offs, ws, bias, dst, ow)
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -245,16 +244,13 @@ mod kernel {
         dst: &mut [f32],
         ow: usize,
     ) {
-        rows_blocked::<FUSED, 32, 4>(src, wq, offs, ws, bias, dst, ow)
+        rows_blocked::<FUSED, 32>(src, wq, offs, ws, bias, dst, ow)
     }
 
-    /// [`rows_generic`] with blocks of `WIDE` columns (32 or 16) before the 16-column ones; on
-    /// maps at most 16 columns wide, rows go `TALL` at a time (8 where the registers allow: four
-    /// 16-lane accumulators are four dependent chains, too few to keep two FMA units busy).
-    /// Every output is the same sum in the same order whatever the blocks.
+    /// [`rows_generic`] with blocks of `WIDE` columns (32 or 16) before the 16-column ones.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn rows_blocked<const FUSED: bool, const WIDE: usize, const TALL: usize>(
+    fn rows_blocked<const FUSED: bool, const WIDE: usize>(
         src: &[f32],
         wq: usize,
         offs: &[usize],
@@ -265,13 +261,7 @@ mod kernel {
     ) {
         let oh = dst.len() / ow;
         let mut y = 0;
-        if TALL > 4 && ow <= 16 {
-            for out in dst.chunks_exact_mut(TALL * ow) {
-                row_group::<FUSED, WIDE, TALL>(src, wq, offs, ws, bias, out, ow, y);
-                y += TALL;
-            }
-        }
-        for out in dst[y * ow..].chunks_exact_mut(4 * ow) {
+        for out in dst.chunks_exact_mut(4 * ow) {
             row_group::<FUSED, WIDE, 4>(src, wq, offs, ws, bias, out, ow, y);
             y += 4;
         }
@@ -446,7 +436,7 @@ mod tests {
             ConvShape { ci: 5, h: 33, w: 65, co: 5, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 },
             ConvShape { ci: 2, h: 16, w: 16, co: 2, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 2 },
             ConvShape { ci: 3, h: 10, w: 13, co: 3, kh: 4, kw: 3, pad: [0, 1, 2, 0], stride: 2 },
-            // 16 columns: rows eight, four and one at a time.
+            // 16 columns, 13 rows: four at a time, then one.
             ConvShape { ci: 2, h: 13, w: 16, co: 2, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 },
             // Over SERIAL_MACS: channels in groups (on the pool, when there is one).
             ConvShape { ci: 16, h: 64, w: 64, co: 16, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 },
