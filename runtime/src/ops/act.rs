@@ -24,6 +24,9 @@ pub(crate) struct Activation {
     pub hard_swish: bool,
 }
 
+// The bounds are never NaN (`tail` refuses NaN constants): equality is an equivalence.
+impl Eq for Activation {}
+
 impl Activation {
     /// The identity.
     pub const NONE: Activation = Activation { lo: f32::NEG_INFINITY, hi: f32::INFINITY, hard_swish: false };
@@ -275,5 +278,31 @@ mod tests {
             model.wire_node("max", max(), &[y, lo]).unwrap()[0]
         };
         check(24, 24, 24, crossed, 4);
+    }
+
+    #[test]
+    fn a_broadcast_product_takes_in_the_hard_swish_after_it() {
+        // Squeeze-excitation's scaling: [1, c, h, w] · [1, c, 1, 1], then hard-swish.
+        let mut model = TypedModel::default();
+        let x = model.add_source("x", f32::fact([1, 24, 16, 16])).unwrap();
+        let s = model.add_source("s", f32::fact([1, 24, 1, 1])).unwrap();
+        let y = model.wire_node("scale", tract_nnef::tract_core::ops::math::mul(), &[x, s]).unwrap()[0];
+        let y = model.wire_node("hs", hard_swish(), &[y]).unwrap()[0];
+        model.select_output_outlets(&[y]).unwrap();
+        let inputs = || {
+            let x = Tensor::from_shape(&[1, 24, 16, 16], &values(24 * 256, 1)).unwrap();
+            let s = Tensor::from_shape(&[1, 24, 1, 1], &values(24, 7)).unwrap();
+            tvec![x.into_tvalue(), s.into_tvalue()]
+        };
+        let want = model.clone().into_runnable().unwrap().run(inputs()).unwrap();
+        let done = super::super::accelerate(&mut model).unwrap();
+        assert_eq!(done.broadcasts, 1);
+        assert_eq!(model.nodes().len(), 3, "the sources and the fused product");
+        let got = model.into_runnable().unwrap().run(inputs()).unwrap();
+        let (got, want) = (got[0].try_as_plain_ram().unwrap(), want[0].try_as_plain_ram().unwrap());
+        let (got, want) = (got.as_slice::<f32>().unwrap(), want.as_slice::<f32>().unwrap());
+        for (i, (g, w)) in got.iter().zip(want).enumerate() {
+            assert!((g - w).abs() <= 1e-5 * w.abs().max(1.0), "element {i}: {g} vs {w}");
+        }
     }
 }

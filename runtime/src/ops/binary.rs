@@ -11,6 +11,8 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::binary::TypedBinOp;
 use tract_nnef::tract_core::ops::math::{Add, Mul};
 
+use super::act::{Activation, Tail};
+
 /// Which operation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Binary {
@@ -20,14 +22,25 @@ pub enum Binary {
     Add,
 }
 
-/// `out = full ∘ small` (`∘` commutative) where `small` has the rank of `full` and each of its
-/// axes is either `full`'s or 1.
+/// `out = act(full ∘ small)` (`∘` commutative) where `small` has the rank of `full` and each of
+/// its axes is either `full`'s or 1, and `act` the activation after it in the graph, if any
+/// (squeeze-excitation's scaling is followed by hard-swish in MobileNetV3).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct BroadcastBinary {
     /// The operation.
     pub op: Binary,
     /// Which input has the output's shape (0 or 1).
     pub full: usize,
+    act: Activation,
+}
+
+impl BroadcastBinary {
+    /// The operation followed by the nodes of `tail` ([`super::act::tail`]), where they keep
+    /// its output's shape.
+    pub(crate) fn fused(&self, tail: &Tail, shape: &[usize]) -> Option<BroadcastBinary> {
+        (tail.bias.is_none() && tail.shape.as_slice() == shape)
+            .then(|| BroadcastBinary { act: tail.act, ..self.clone() })
+    }
 }
 
 impl Op for BroadcastBinary {
@@ -36,7 +49,7 @@ impl Op for BroadcastBinary {
     }
 
     fn info(&self) -> TractResult<Vec<String>> {
-        Ok(vec![format!("{:?}", self.op)])
+        Ok(vec![format!("{:?}, activation {}", self.op, self.act.describe())])
     }
 
     op_as_typed_op!();
@@ -106,6 +119,7 @@ impl EvalOp for BroadcastBinary {
                     (Binary::Mul, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v *= s),
                     (Binary::Add, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v += s),
                 }
+                self.act.apply_all(chunk);
             }
         }
         Ok(tvec!(out.into_tvalue()))
@@ -147,7 +161,7 @@ pub(crate) fn broadcast_binary(model: &TypedModel, node: &TypedNode) -> TractRes
         return Ok(None);
     };
     let outputs: usize = [a, b][full].iter().product();
-    Ok((outputs >= 4096).then_some(BroadcastBinary { op, full }))
+    Ok((outputs >= 4096).then_some(BroadcastBinary { op, full, act: Activation::NONE }))
 }
 
 #[cfg(test)]
@@ -176,7 +190,7 @@ mod tests {
                 let inputs = tvec![x.clone().into_tvalue(), y.clone().into_tvalue()];
                 let want = tract_op.eval(&EvalContext::out_of_plan(), inputs).unwrap().remove(0);
                 let full = if a.iter().product::<usize>() >= b.iter().product() { 0 } else { 1 };
-                let ours = BroadcastBinary { op, full };
+                let ours = BroadcastBinary { op, full, act: Activation::NONE };
                 let got = ours.eval(&EvalContext::out_of_plan(), tvec![x.into_tvalue(), y.into_tvalue()]).unwrap();
                 assert_eq!(got[0].shape(), want.shape());
                 let (got, want) = (got[0].try_as_plain_ram().unwrap(), want.try_as_plain_ram().unwrap());

@@ -141,6 +141,14 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
             (Box::new(op), tvec![x])
         } else if let Some(op) = binary::broadcast_binary(model, node)? {
             done.broadcasts += 1;
+            let shape = node.outputs[0].fact.shape.as_concrete().unwrap_or_default();
+            let op = match act::tail(model, node, None)?.and_then(|t| Some((op.fused(&t, shape)?, t.chain))) {
+                Some((fused, c)) => {
+                    chain = c;
+                    fused
+                }
+                None => op,
+            };
             (Box::new(op), node.inputs.iter().copied().collect())
         } else if let Some(op) = quant::quantize_u8(model, node)? {
             done.quantizers += 1;
