@@ -377,9 +377,9 @@ fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape,
         return None;
     }
     let dims = facts.first()?.shape.as_concrete()?;
-    let (ci, h, w) = match dims {
-        &[_, ci, h, w] if batch => (ci, h, w),
-        &[ci, h, w] if !batch => (ci, h, w),
+    let (ci, h, w) = match *dims {
+        [_, ci, h, w] if batch => (ci, h, w),
+        [ci, h, w] if !batch => (ci, h, w),
         _ => return None,
     };
     let &[co, wi] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
