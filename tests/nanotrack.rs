@@ -568,3 +568,14 @@ fn demo_tracks_the_generated_video_with_the_trained_model() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--family prl-track"));
 }
+
+#[test]
+fn graphs_with_no_layer_worth_splitting_run_on_one_thread() {
+    // NanoTrack's largest layer has 7 M multiply-adds (under Plan's 2^24); PRL-Track's have
+    // hundreds of millions and keep the thread setting.
+    let tmp = tempfile::tempdir().unwrap();
+    let nano = Plan::load(common::nanotrack_plan(tmp.path())).unwrap();
+    assert_eq!(nano.single_threaded(), (true, true));
+    let prl = Plan::load(common::reference_plan()).unwrap();
+    assert_eq!(prl.single_threaded(), (false, false));
+}
