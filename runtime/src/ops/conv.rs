@@ -62,12 +62,16 @@ unsafe fn copy_rows_avx512(src: *const f32, w: usize, rows: usize, dst: *mut f32
 /// `ceil(len / 2)` values, `odd` `floor(len / 2)`).
 fn deinterleave(row: &[f32], even: &mut [f32], odd: &mut [f32]) {
     assert!(even.len() == row.len().div_ceil(2) && odd.len() == row.len() / 2);
-    let mut done = 0;
+    // The pairs the vector path wrote (none where there is none).
     #[cfg(target_arch = "x86_64")]
-    if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 {
+    let done = if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 {
         // SAFETY: the CPU has AVX-512F (the table's needs); the lengths are asserted above.
-        done = unsafe { deinterleave_avx512(row, even, odd) };
-    }
+        unsafe { deinterleave_avx512(row, even, odd) }
+    } else {
+        0
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let done = 0;
     for ((e, o), pair) in even[done..].iter_mut().zip(odd[done..].iter_mut()).zip(row[2 * done..].chunks_exact(2)) {
         (*e, *o) = (pair[0], pair[1]);
     }
