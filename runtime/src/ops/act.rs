@@ -108,7 +108,7 @@ impl Tail {
 
 /// The sole consumer of `node`'s single output, if it has exactly one and that output is not
 /// one of the model's.
-fn sole_consumer<'m>(model: &'m TypedModel, node: &TypedNode) -> Option<&'m TypedNode> {
+pub(super) fn sole_consumer<'m>(model: &'m TypedModel, node: &TypedNode) -> Option<&'m TypedNode> {
     let outlet = OutletId::new(node.id, 0);
     match (&node.outputs[..], model.output_outlets().ok()?.contains(&outlet)) {
         ([o], false) if o.successors.len() == 1 => Some(model.node(o.successors[0].node)),
@@ -117,7 +117,7 @@ fn sole_consumer<'m>(model: &'m TypedModel, node: &TypedNode) -> Option<&'m Type
 }
 
 /// The constant other input of a binary `node` whose other input is `from`.
-fn other_const(model: &TypedModel, node: &TypedNode, from: OutletId) -> Option<Arc<Tensor>> {
+pub(super) fn other_const(model: &TypedModel, node: &TypedNode, from: OutletId) -> Option<Arc<Tensor>> {
     let [a, b] = node.inputs[..] else { return None };
     let other = if a == from {
         b

@@ -225,14 +225,19 @@ mod kernel {
         }
         while x0 < ow {
             let n = (ow - x0).min(16);
-            block::<FUSED, 16, R>(src, base + x0, wq, offs, ws, bias, out, (ow, x0, n));
+            if n <= 8 {
+                // An 8x8 map (MobileNet's last layers on a template) fills half a 16-lane block.
+                block::<FUSED, 8, R>(src, base + x0, wq, offs, ws, bias, out, (ow, x0, n));
+            } else {
+                block::<FUSED, 16, R>(src, base + x0, wq, offs, ws, bias, out, (ow, x0, n));
+            }
             x0 += n;
         }
     }
 
     /// The portable form; `FUSED` uses fused multiply-adds (only where the CPU has them:
     /// elsewhere `mul_add` is a library call). Rows go four at a time, in blocks of 32 columns,
-    /// then 16 (a 16x16 map wastes nothing); the last block of a row computes past its end into
+    /// then 16 (a 16x16 map wastes nothing), then 8 for what is left; the last block of a row computes past its end into
     /// the scratch's slack and keeps only the columns that exist.
     #[inline(always)]
     pub(super) fn rows_generic<const FUSED: bool>(
@@ -436,6 +441,9 @@ mod tests {
             ConvShape { ci: 5, h: 33, w: 65, co: 5, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 },
             ConvShape { ci: 2, h: 16, w: 16, co: 2, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 2 },
             ConvShape { ci: 3, h: 10, w: 13, co: 3, kh: 4, kw: 3, pad: [0, 1, 2, 0], stride: 2 },
+            // 8 columns (an 8-column block), 27 (two 16-column blocks, one part-filled).
+            ConvShape { ci: 3, h: 8, w: 8, co: 3, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 },
+            ConvShape { ci: 2, h: 9, w: 27, co: 2, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 },
             // 16 columns, 13 rows: four at a time, then one.
             ConvShape { ci: 2, h: 13, w: 16, co: 2, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 },
             // Over SERIAL_MACS: channels in groups (on the pool, when there is one).

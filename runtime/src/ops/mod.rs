@@ -5,7 +5,7 @@
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some, or aarch64's dot product), max pooling
 //! ([`ChannelMaxPool`]), pointwise convolutions with their bias and activation ([`PointwiseConv`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
 //! norms ([`LayerNormCore`]), linear layers ([`ConstMatMul`]) and broadcast products and sums
-//! ([`BroadcastBinary`]), and int8 plans' quantisation of activations ([`QuantizeU8`]). Plans
+//! ([`BroadcastBinary`]), squeeze-excitation blocks ([`SqueezeExcite`]), and int8 plans' quantisation of activations ([`QuantizeU8`]). Plans
 //! on disk keep tract's
 //! standard operators, so the choice is made on the machine that runs the plan.
 
@@ -26,6 +26,7 @@ mod qconv_amx;
 mod qconv_kernel;
 mod qconv_lanes;
 mod quant;
+mod se;
 mod xcorr;
 mod xcorr_kernel;
 
@@ -40,6 +41,7 @@ pub use pointwise::PointwiseConv;
 pub use pool::ChannelMaxPool;
 pub use qconv::PackedQConv;
 pub use quant::QuantizeU8;
+pub use se::SqueezeExcite;
 pub use xcorr::DepthwiseXCorr;
 
 use tract_nnef::internal::*;
@@ -79,6 +81,9 @@ pub struct Accelerated {
     pub broadcasts: usize,
     /// Quantisations of f32 activations to u8 made [`QuantizeU8`].
     pub quantizers: usize,
+    /// Squeeze-excitation blocks (spatial mean, gate, per-channel product and the activation
+    /// after it) made [`SqueezeExcite`].
+    pub squeeze_excite: usize,
 }
 
 /// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
@@ -153,6 +158,10 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         } else if let Some(op) = quant::quantize_u8(model, node)? {
             done.quantizers += 1;
             (Box::new(op), tvec![node.inputs[0]])
+        } else if let Some((op, x, c)) = se::squeeze_excite(model, node)? {
+            done.squeeze_excite += 1;
+            chain = c;
+            (Box::new(op), tvec![x])
         } else if xcorr::matches(model, node)? {
             done.correlations += 1;
             (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())
@@ -262,7 +271,9 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
     let isa = crate::isa();
     match op {
         "PackedConv" | "DepthwiseConv" | "DepthwiseConvHwc" | "DepthwiseXCorr" | "ConstMatMul" | "PointwiseConv"
-        | "AttnScores" | "AttnMix" | "RowSoftmax" | "QuantizeU8" => crate::isa::f32_kernel().name().to_string(),
+        | "AttnScores" | "AttnMix" | "RowSoftmax" | "QuantizeU8" | "SqueezeExcite" => {
+            crate::isa::f32_kernel().name().to_string()
+        }
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
         "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" => "portable (vectorised)".to_string(),
         _ => info
