@@ -105,6 +105,58 @@ unsafe fn deinterleave_avx512(row: &[f32], even: &mut [f32], odd: &mut [f32]) ->
     16 * blocks
 }
 
+/// The stride-2 form of [`ConvShape::pad_plane`] for a whole plane on AVX-512: each of `rows`
+/// rows of `w` values (`w >= 2`) has its even and odd values written to its row slot of the
+/// phases (`(yp % 2)·2·hq·wq + (yp / 2)·wq` for padded row `yp = y + pad_top`) at `at[0]` and
+/// `at[1]`: 32 values a step (two loads, two permutes), the row's rest under masks.
+///
+/// # Safety
+/// The CPU has AVX-512F; `src` holds `rows · w` values; every row's `ceil(w / 2)` values from
+/// `slot + at[0]` and `floor(w / 2)` from `slot + at[1]` are within `dst`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn split_rows_avx512(
+    src: *const f32,
+    w: usize,
+    rows: usize,
+    dst: *mut f32,
+    at: [usize; 2],
+    pad_top: usize,
+    hq: usize,
+    wq: usize,
+) {
+    use std::arch::x86_64::*;
+    let ie = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
+    let io = _mm512_setr_epi32(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
+    let (blocks, rest) = (w / 32, w % 32);
+    // The rest: up to 31 values in two masked loads, ceil(rest / 2) evens, floor(rest / 2) odds.
+    let load_lo = ((1u64 << rest.min(16)) - 1) as __mmask16;
+    let load_hi = ((1u64 << rest.saturating_sub(16)) - 1) as __mmask16;
+    let (keep_e, keep_o) = (((1u32 << rest.div_ceil(2)) - 1) as __mmask16, ((1u32 << (rest / 2)) - 1) as __mmask16);
+    for y in 0..rows {
+        let yp = y + pad_top;
+        let slot = (yp % 2) * 2 * hq * wq + (yp / 2) * wq;
+        // SAFETY: row y's values are within `src`, its runs within `dst` (the caller's
+        // promise); masked lanes are neither read nor written.
+        unsafe {
+            let (row, even, odd) = (src.add(y * w), dst.add(slot + at[0]), dst.add(slot + at[1]));
+            for b in 0..blocks {
+                let lo = _mm512_loadu_ps(row.add(32 * b));
+                let hi = _mm512_loadu_ps(row.add(32 * b + 16));
+                _mm512_storeu_ps(even.add(16 * b), _mm512_permutex2var_ps(lo, ie, hi));
+                _mm512_storeu_ps(odd.add(16 * b), _mm512_permutex2var_ps(lo, io, hi));
+            }
+            if rest > 0 {
+                let lo = _mm512_maskz_loadu_ps(load_lo, row.add(32 * blocks));
+                let hi = _mm512_maskz_loadu_ps(load_hi, row.add(32 * blocks + 16));
+                _mm512_mask_storeu_ps(even.add(16 * blocks), keep_e, _mm512_permutex2var_ps(lo, ie, hi));
+                _mm512_mask_storeu_ps(odd.add(16 * blocks), keep_o, _mm512_permutex2var_ps(lo, io, hi));
+            }
+        }
+    }
+}
+
 /// Shape of one convolution: input `[N, ci, h, w]`, padding, kernel `kh` x `kw`, `co` outputs.
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
 pub struct ConvShape {
@@ -181,6 +233,21 @@ impl ConvShape {
         let p = self.pad[1];
         let (even_at, odd_at) = ((p & 1) * hq * wq + (p >> 1), ((p + 1) & 1) * hq * wq + ((p + 1) >> 1));
         let (ne, no) = (w.div_ceil(2), w / 2);
+        #[cfg(target_arch = "x86_64")]
+        if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 && no > 0 {
+            let rows = src.len() / w;
+            // Every row's two runs within `dst` (the last two rows reach furthest: one of each
+            // row parity).
+            let slot = |yp: usize| (yp % 2) * 2 * hq * wq + (yp / 2) * wq;
+            let reach = (rows.saturating_sub(2)..rows).map(|y| slot(y + self.pad[0])).max().unwrap_or(0);
+            assert!(rows == 0 || reach + even_at.max(odd_at) + ne <= dst.len(), "rows within the padded plane");
+            // SAFETY: the CPU has AVX-512F; `rows · w <= src.len()`, and every row's runs are
+            // within `dst` (asserted above: the slots grow with the row within each parity).
+            unsafe {
+                split_rows_avx512(src.as_ptr(), w, rows, dst.as_mut_ptr(), [even_at, odd_at], self.pad[0], hq, wq)
+            };
+            return;
+        }
         for (y, row) in src.chunks_exact(w).enumerate() {
             let yp = y + self.pad[0];
             let slot = (yp % 2) * 2 * hq * wq + (yp / 2) * wq;
@@ -504,6 +571,30 @@ mod tests {
             deinterleave(&row, &mut even, &mut odd);
             assert!(even.iter().enumerate().all(|(i, &v)| v == (2 * i) as f32), "even, {len}");
             assert!(odd.iter().enumerate().all(|(i, &v)| v == (2 * i + 1) as f32), "odd, {len}");
+        }
+    }
+
+    #[test]
+    fn pads_a_plane_for_stride_2_as_its_phases() {
+        // Every row length from 1 to 99 (whole blocks of 32 on AVX-512 and masked rests), both
+        // column paddings' parities, odd and even row counts; the padding stays untouched.
+        for w in 1..100usize {
+            for (h, pad) in [(5, [1, 1, 1, 1]), (4, [2, 2, 2, 2]), (3, [0, 1, 2, 0]), (6, [1, 0, 0, 3])] {
+                let s = ConvShape { ci: 1, h, w, co: 1, kh: 3, kw: 3, pad, stride: 2 };
+                let (hq, wq) = s.phase();
+                let src: Vec<f32> = (0..h * w).map(|i| i as f32).collect();
+                let mut got = vec![-1.0f32; 4 * hq * wq + 8];
+                s.pad_plane(&src, &mut got);
+                // Padded (yp, xp) goes to phase (yp % 2, xp % 2), at (yp / 2, xp / 2).
+                let mut want = vec![-1.0f32; got.len()];
+                for y in 0..h {
+                    for x in 0..w {
+                        let (yp, xp) = (y + pad[0], x + pad[1]);
+                        want[((yp % 2) * 2 + xp % 2) * hq * wq + (yp / 2) * wq + xp / 2] = src[y * w + x];
+                    }
+                }
+                assert_eq!(got, want, "w {w}, h {h}, pad {pad:?}");
+            }
         }
     }
 

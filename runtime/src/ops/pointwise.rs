@@ -118,8 +118,12 @@ impl PointwiseConv {
         let (xs, ldx) = if cols == NB {
             (&x[j0..], n)
         } else {
-            padded =
-                (0..k).flat_map(|i| (0..NB).map(move |j| if j < cols { x[i * n + j0 + j] } else { 0.0 })).collect();
+            let mut p = Vec::with_capacity(k * NB);
+            for i in 0..k {
+                p.extend_from_slice(&x[i * n + j0..][..cols]);
+                p.resize((i + 1) * NB, 0.0);
+            }
+            padded = p;
             (&padded[..], NB)
         };
         for p in 0..self.m.div_ceil(MR) {
