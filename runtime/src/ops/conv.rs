@@ -296,6 +296,9 @@ pub struct PackedConv {
     bias: Arc<Vec<f32>>,
     /// Applied to the output as it is written (the graph's activation after the convolution).
     act: Activation,
+    /// The padded input's positions the channels' padding does not write
+    /// ([`super::with_padded`]).
+    borders: Arc<Vec<(usize, usize)>>,
     /// The output's shape where the fused nodes end in another shape than `[n, co, oh, ow]`.
     reshape: Option<TVec<usize>>,
 }
@@ -360,7 +363,22 @@ impl PackedConv {
         let offsets = shape.tap_offsets(shape.ci);
         let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp: wq, oh, ow };
         let (weights, bias) = (Arc::new(packed), Arc::new(bias));
-        Ok(PackedConv { shape, layout: Arc::new(layout), weights, lanes, bias, act: Activation::NONE, reshape: None })
+        let plane_in = shape.stride * shape.stride * shape.phase().0 * wq;
+        let zeros = vec![0.0; shape.h * shape.w];
+        let borders = Arc::new(super::unwritten_runs(Self::padded_len(&shape), |buf| {
+            for plane in buf.chunks_exact_mut(plane_in).take(shape.ci) {
+                shape.pad_plane(&zeros, plane);
+            }
+        }));
+        let layout = Arc::new(layout);
+        Ok(PackedConv { shape, layout, weights, lanes, bias, act: Activation::NONE, borders, reshape: None })
+    }
+
+    /// The length of the padded input: every channel's plane (its phases with stride 2), with
+    /// room past the end for a tile of positions and a row.
+    fn padded_len(s: &ConvShape) -> usize {
+        let (hq, wq) = s.phase();
+        s.ci * s.stride * s.stride * hq * wq + MAX_PX + wq
     }
 
     /// The convolution followed by the nodes of `tail` ([`super::act::tail`]).
@@ -413,26 +431,27 @@ impl EvalOp for PackedConv {
         let plane = oh * ow;
         let taps = self.layout.taps.len();
         let phases = s.stride * s.stride;
-        let mut padded = vec![0f32; ci * phases * hq * wq + MAX_PX + wq];
         let fill = |out: &mut [f32]| {
-            for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
-                let plane_in = phases * hq * wq;
-                for (c, src) in src.chunks_exact(h * w).enumerate() {
-                    s.pad_plane(src, &mut padded[c * plane_in..(c + 1) * plane_in]);
+            super::with_padded(Self::padded_len(s), &self.borders, |padded| {
+                for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
+                    let plane_in = phases * hq * wq;
+                    for (c, src) in src.chunks_exact(h * w).enumerate() {
+                        s.pad_plane(src, &mut padded[c * plane_in..(c + 1) * plane_in]);
+                    }
+                    if let Some(lanes) = &self.lanes {
+                        lanes.run(&self.layout, padded, &self.bias, dst);
+                        self.act.apply_all(dst);
+                        continue;
+                    }
+                    par_chunks(dst, ROWS * plane, |b, out| {
+                        let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
+                        let bias: &[f32; ROWS] = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
+                        channel_block(&self.layout, padded, weights, bias, out);
+                        self.act.apply_all(out);
+                    });
                 }
-                if let Some(lanes) = &self.lanes {
-                    lanes.run(&self.layout, &padded, &self.bias, dst);
-                    self.act.apply_all(dst);
-                    continue;
-                }
-                par_chunks(dst, ROWS * plane, |b, out| {
-                    let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
-                    let bias: &[f32; ROWS] = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
-                    channel_block(&self.layout, &padded, weights, bias, out);
-                    self.act.apply_all(out);
-                });
-            }
-            Ok(())
+                Ok(())
+            })
         };
         // SAFETY: every output is written: the tiles cover every position of every row, each
         // channel block (or lanes' block) writes all its channels.

@@ -38,6 +38,8 @@ pub struct DepthwiseConv {
     bias: Arc<Vec<f32>>,
     /// Applied to each channel's output once written (the graph's activation after it).
     act: Activation,
+    /// The scratch's positions a channel's padding does not write ([`super::with_padded`]).
+    borders: Arc<Vec<(usize, usize)>>,
     /// The output's shape where the fused nodes end in another shape than the convolution's.
     reshape: Option<TVec<usize>>,
 }
@@ -72,7 +74,17 @@ impl DepthwiseConv {
         let bias = (0..c).map(|o| if bias.len() == 1 { bias[0] } else { bias[o] }).collect();
         let offsets = Arc::new(shape.tap_offsets(1));
         let (weights, bias) = (Arc::new(weight.to_vec()), Arc::new(bias));
-        Ok(DepthwiseConv { shape, batch, offsets, weights, bias, act: Activation::NONE, reshape: None })
+        let borders = Arc::new(super::unwritten_runs(Self::scratch_len(&shape), |buf| {
+            shape.pad_plane(&vec![0.0; shape.h * shape.w], buf)
+        }));
+        Ok(DepthwiseConv { shape, batch, offsets, weights, bias, act: Activation::NONE, borders, reshape: None })
+    }
+
+    /// The length of the scratch plane: the padded input (its phases with stride 2), with room
+    /// for a whole column block past the end.
+    fn scratch_len(s: &ConvShape) -> usize {
+        let (hq, wq) = s.phase();
+        s.stride * s.stride * hq * wq + BLOCK
     }
 
     /// The convolution followed by the nodes of `tail` ([`super::act::tail`]).
@@ -81,12 +93,12 @@ impl DepthwiseConv {
         Ok(DepthwiseConv { act: tail.act, reshape: tail.reshaped(), ..self })
     }
 
-    /// A zeroed scratch plane for [`Self::channel`]: the padded input (its phases with stride
-    /// 2), with room for a whole column block past the end. Its borders stay zero from channel
-    /// to channel, since every channel writes the same interior positions.
+    /// A zeroed scratch plane for [`Self::channel`] ([`Self::scratch_len`] long; the operator
+    /// itself takes a thread's buffer, [`super::with_padded`]). Its borders stay zero from
+    /// channel to channel, since every channel writes the same interior positions.
+    #[cfg(test)]
     fn scratch(&self) -> Vec<f32> {
-        let (hq, wq) = self.shape.phase();
-        vec![0.0; self.shape.stride * self.shape.stride * hq * wq + BLOCK]
+        vec![0.0; Self::scratch_len(&self.shape)]
     }
 
     /// One channel: `src` `[h, w]` into `dst` `[oh, ow]`, with `scratch` from [`Self::scratch`].
@@ -322,11 +334,12 @@ impl EvalOp for DepthwiseConv {
         let macs = plane * s.kh * s.kw;
         let group = (SERIAL_MACS / 8 / macs.max(1)).clamp(1, n * c);
         let run = |g: usize, dst: &mut [f32]| {
-            let mut scratch = self.scratch();
-            for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
-                let p = g * group + k;
-                self.channel(p % c, &input[p * h * w..(p + 1) * h * w], d, &mut scratch);
-            }
+            super::with_padded(Self::scratch_len(s), &self.borders, |scratch| {
+                for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                    let p = g * group + k;
+                    self.channel(p % c, &input[p * h * w..(p + 1) * h * w], d, scratch);
+                }
+            })
         };
         let fill = |out: &mut [f32]| {
             if n * c * macs < SERIAL_MACS {
