@@ -278,7 +278,15 @@ mod kernel {
     ) {
         let oh = dst.len() / ow;
         let mut y = 0;
-        for out in dst.chunks_exact_mut(4 * ow) {
+        if ow <= 8 {
+            // One 8-column block a row: eight rows at once (eight independent accumulators;
+            // four leave the multiply-adds waiting on each other's latency).
+            for out in dst.chunks_exact_mut(8 * ow) {
+                row_group::<FUSED, WIDE, 8>(src, wq, offs, ws, bias, out, ow, y);
+                y += 8;
+            }
+        }
+        for out in dst[y * ow..].chunks_exact_mut(4 * ow) {
             row_group::<FUSED, WIDE, 4>(src, wq, offs, ws, bias, out, ow, y);
             y += 4;
         }
