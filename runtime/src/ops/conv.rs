@@ -446,8 +446,7 @@ impl EvalOp for PackedConv {
                     par_chunks(dst, ROWS * plane, |b, out| {
                         let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
                         let bias: &[f32; ROWS] = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
-                        channel_block(&self.layout, padded, weights, bias, out);
-                        self.act.apply_all(out);
+                        channel_block(&self.layout, padded, weights, bias, self.act, out);
                     });
                 }
                 Ok(())

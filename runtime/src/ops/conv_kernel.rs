@@ -10,7 +10,13 @@
 /// Output channels per tile (the packing's block).
 pub(crate) const ROWS: usize = 8;
 
+use super::act::Activation;
 use crate::isa::F32Kernel;
+/// Taps per pass over the tiles on AVX-512 (a pass's weights stay in L1); with no more, each
+/// tile goes to the output as soon as it is summed.
+#[cfg(target_arch = "x86_64")]
+const CHUNK: usize = 128;
+
 /// Positions per tile of the widest kernel (two AVX-512 registers).
 pub(crate) const MAX_PX: usize = 32;
 
@@ -42,13 +48,26 @@ impl Layout {
 }
 
 /// One block of `ROWS` output channels (fewer in `out` for the last block: `out` holds
-/// `out.len() / (oh·ow)` planes): `out[r] = bias[r] + conv(padded, weights[r])`. `padded` must
+/// `out.len() / (oh·ow)` planes): `out[r] = act(bias[r] + conv(padded, weights[r]))`. `padded` must
 /// extend `MAX_PX` values past the last tap of the last position.
-pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
+pub(crate) fn channel_block(
+    l: &Layout,
+    padded: &[f32],
+    weights: &[f32],
+    bias: &[f32; ROWS],
+    act: Activation,
+    out: &mut [f32],
+) {
     assert!(weights.len() == l.taps.len() * ROWS);
     assert!(l.taps.iter().all(|&t| t + l.positions() + MAX_PX <= padded.len()));
     match crate::isa::f32_kernel() {
         // SAFETY: the CPU has AVX-512F; every load stays in `padded` and `weights` (asserted).
+        // The activation is applied in registers where the taps fit one chunk.
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx512 if l.taps.len() <= CHUNK => {
+            return unsafe { positions_avx512_fused(l, padded, weights, bias, act, out) };
+        }
+        // SAFETY: as above.
         #[cfg(target_arch = "x86_64")]
         F32Kernel::Avx512 => unsafe { positions_avx512(l, padded, weights, bias, out) },
         // SAFETY: the CPU has the features the function is compiled for.
@@ -60,12 +79,25 @@ pub(crate) fn channel_block(l: &Layout, padded: &[f32], weights: &[f32], bias: &
         F32Kernel::Neon => unsafe { positions_neon(l, padded, weights, bias, out) },
         _ => positions::<false>(l, padded, weights, bias, out),
     }
+    act.apply_all(out);
 }
 
 /// Write a tile's `acc[r][q]` (position `p0 + q`) to the output planes, dropping the wide
 /// columns and the positions past the end.
 #[inline(always)]
 fn scatter<const PX: usize>(l: &Layout, acc: &[[f32; PX]; ROWS], bias: &[f32; ROWS], p0: usize, out: &mut [f32]) {
+    scatter_with::<PX, true>(l, acc, bias, p0, out)
+}
+
+/// [`scatter`], adding the bias when `BIAS` (else the tile holds the outputs as they are).
+#[inline(always)]
+fn scatter_with<const PX: usize, const BIAS: bool>(
+    l: &Layout,
+    acc: &[[f32; PX]; ROWS],
+    bias: &[f32; ROWS],
+    p0: usize,
+    out: &mut [f32],
+) {
     let plane = l.oh * l.ow;
     let rows = out.len() / plane;
     let end = PX.min(l.positions() - p0);
@@ -77,8 +109,12 @@ fn scatter<const PX: usize>(l: &Layout, acc: &[[f32; PX]; ROWS], bias: &[f32; RO
         let valid = l.ow.saturating_sub(x).min(run);
         for r in 0..rows {
             let dst = &mut out[r * plane + y * l.ow + x..][..valid];
-            for (d, &a) in dst.iter_mut().zip(&acc[r][q..q + valid]) {
-                *d = a + bias[r];
+            if BIAS {
+                for (d, &a) in dst.iter_mut().zip(&acc[r][q..q + valid]) {
+                    *d = a + bias[r];
+                }
+            } else {
+                dst.copy_from_slice(&acc[r][q..q + valid]);
             }
         }
         q += run;
@@ -124,37 +160,19 @@ fn positions<const FUSED: bool>(l: &Layout, padded: &[f32], weights: &[f32], bia
 }
 
 /// Tiles of 32 positions: 16 AVX-512 accumulators, two input loads and eight broadcasts per
-/// tap. The taps are taken `CHUNK` at a time over every tile, the partial sums kept in `sums`:
-/// a chunk's weights stay in L1 and the input rows one tile reads are still there for the next.
+/// tap, for more than `CHUNK` taps ([`positions_avx512_fused`] takes fewer). The taps are taken
+/// `CHUNK` at a time over every tile, the partial sums kept in `sums`: a chunk's weights stay
+/// in L1 and the input rows one tile reads are still there for the next.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn positions_avx512(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
-    const CHUNK: usize = 128;
     const TILE: usize = ROWS * MAX_PX;
     let tiles = l.positions().div_ceil(MAX_PX);
-    if l.taps.len() <= CHUNK {
-        // One chunk of taps: each tile goes to the output as soon as it is summed.
-        for tile in 0..tiles {
-            let mut acc = [[0f32; MAX_PX]; ROWS];
-            // SAFETY: `channel_block` asserted every tap's tile in `padded`; `weights` holds
-            // `ROWS` values per tap; `acc` is a whole tile.
-            unsafe {
-                tile_avx512(
-                    padded.as_ptr().add(tile * MAX_PX),
-                    &l.taps,
-                    weights.as_ptr(),
-                    acc.as_mut_ptr().cast(),
-                    false,
-                )
-            };
-            scatter(l, &acc, bias, tile * MAX_PX, out);
-        }
-        return;
-    }
     let mut sums = vec![0f32; tiles * TILE];
     for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
         for (tile, sums) in sums.chunks_exact_mut(TILE).enumerate() {
-            // SAFETY: as above, with `sums` holding a whole tile.
+            // SAFETY: `channel_block` asserted every tap's tile in `padded`; `weights` holds
+            // `ROWS` values per tap; `sums` holds a whole tile.
             unsafe {
                 let base = padded.as_ptr().add(tile * MAX_PX);
                 tile_avx512(base, taps, weights.as_ptr().add(c * CHUNK * ROWS), sums.as_mut_ptr(), c > 0)
@@ -162,6 +180,53 @@ unsafe fn positions_avx512(l: &Layout, padded: &[f32], weights: &[f32], bias: &[
         }
     }
     scatter_tiles::<MAX_PX>(l, &sums, bias, out);
+}
+
+/// [`positions_avx512`] for at most `CHUNK` taps, each tile finished in registers (bias, then
+/// `act`, as [`Activation::apply`] computes them) before it goes to the output: the output is
+/// not read back for the activation (a pass over it that cost the stem as much as a fifth of
+/// its time).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn positions_avx512_fused(
+    l: &Layout,
+    padded: &[f32],
+    weights: &[f32],
+    bias: &[f32; ROWS],
+    act: Activation,
+    out: &mut [f32],
+) {
+    use std::arch::x86_64::*;
+    let tiles = l.positions().div_ceil(MAX_PX);
+    let (lo, hi) = (_mm512_set1_ps(act.lo), _mm512_set1_ps(act.hi));
+    let (three, six, zero, sixth) =
+        (_mm512_set1_ps(3.0), _mm512_set1_ps(6.0), _mm512_setzero_ps(), _mm512_set1_ps(1.0 / 6.0));
+    for tile in 0..tiles {
+        let mut acc = [[0f32; MAX_PX]; ROWS];
+        // SAFETY: `channel_block` asserted every tap's tile in `padded`; `weights` holds
+        // `ROWS` values per tap; `acc` is a whole tile.
+        unsafe {
+            tile_avx512(padded.as_ptr().add(tile * MAX_PX), &l.taps, weights.as_ptr(), acc.as_mut_ptr().cast(), false)
+        };
+        for (row, &b) in acc.iter_mut().zip(bias) {
+            let b = _mm512_set1_ps(b);
+            for q in 0..MAX_PX / 16 {
+                // SAFETY: 16 values of a row of MAX_PX.
+                let p = unsafe { row.as_mut_ptr().add(16 * q) };
+                let mut y = _mm512_add_ps(unsafe { _mm512_loadu_ps(p) }, b);
+                if act.clamps() {
+                    y = _mm512_min_ps(_mm512_max_ps(y, lo), hi);
+                }
+                if act.hard_swish {
+                    let r6 = _mm512_min_ps(_mm512_max_ps(_mm512_add_ps(y, three), zero), six);
+                    y = _mm512_mul_ps(_mm512_mul_ps(y, r6), sixth);
+                }
+                // SAFETY: as above.
+                unsafe { _mm512_storeu_ps(p, y) };
+            }
+        }
+        scatter_with::<MAX_PX, false>(l, &acc, bias, tile * MAX_PX, out);
+    }
 }
 
 /// One tile's sums over `taps`: `sums[r][q] = (sums[r][q] if accumulate) + Σ_t w[t][r] ·
@@ -272,7 +337,7 @@ mod tests {
         let bias = [0.5; ROWS];
         let mut a = vec![0f32; 5 * l.oh * l.ow]; // a partial block: 5 of the 8 rows
         let mut b = a.clone();
-        channel_block(&l, &padded, &weights, &bias, &mut a);
+        channel_block(&l, &padded, &weights, &bias, Activation::NONE, &mut a);
         positions::<false>(&l, &padded, &weights, &bias, &mut b);
         let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
         assert!(worst < 1e-3, "off by {worst}");
@@ -283,6 +348,18 @@ mod tests {
             let mut c = a.clone();
             positions::<true>(&l, &padded, &weights, &bias, &mut c);
             assert!(a == c, "the dispatched fused kernel differs from the portable fused loop");
+        }
+        // With an activation (applied in registers on AVX-512): `apply_all`'s values.
+        for act in [
+            Activation { lo: 0.0, hi: 6.0, hard_swish: false },
+            Activation { hard_swish: true, ..Activation::NONE },
+            Activation { lo: -1.0, hi: 2.0, hard_swish: true },
+        ] {
+            let mut d = vec![0f32; a.len()];
+            channel_block(&l, &padded, &weights, &bias, act, &mut d);
+            let mut want = a.clone();
+            act.apply_all(&mut want);
+            assert!(d == want, "{act:?}");
         }
     }
 }
