@@ -97,4 +97,19 @@ impl Cropper {
         let crop = get_subwindow(frame, center, side, round_half_even(s_x) as usize, template.channel_average);
         crop_to_tensor(&crop, side)
     }
+
+    /// [`Self::search`] as the search graph's input tensor (no intermediate buffer).
+    pub(crate) fn search_input(
+        &self,
+        frame: &Frame,
+        center: (f64, f64),
+        size: (f64, f64),
+        template: &TemplateCrop,
+    ) -> Result<tract_nnef::prelude::Tensor> {
+        let s_z = self.search_context(size, frame.width(), frame.height(), template);
+        let side = self.config.instance_size;
+        let s_x = s_z * (side as f64 / self.config.exemplar_size as f64);
+        let crop = get_subwindow(frame, center, side, round_half_even(s_x) as usize, template.channel_average);
+        crate::crop::crop_to_input(&crop, side)
+    }
 }

@@ -202,7 +202,17 @@ impl Plan {
     /// Run the search graph on a float NCHW BGR crop (`[1,3,instance,instance]`) with a target's
     /// features.
     pub fn search(&self, x: &[f32], zf: &TemplateFeatures) -> Result<SearchOutput> {
-        let input = tensor("search", &self.manifest.search.inputs[0].shape, x)?;
+        self.search_input(tensor("search", &self.manifest.search.inputs[0].shape, x)?, zf)
+    }
+
+    /// [`Self::search`] on the input as a tensor of the graph's input shape (the tracker's
+    /// crop, written there directly: no copy).
+    pub(crate) fn search_input(&self, input: Tensor, zf: &TemplateFeatures) -> Result<SearchOutput> {
+        let want = &self.manifest.search.inputs[0].shape;
+        if input.shape() != want.as_slice() {
+            let msg = format!("input of shape {:?} for {want:?}", input.shape());
+            return Err(Error::Run { graph: "search", msg });
+        }
         let mut inputs: TVec<TValue> = tvec![input.into()];
         inputs.extend(zf.0.iter().cloned());
         let outs = self.search.run(inputs).map_err(|e| run_err("search", e))?;

@@ -258,10 +258,10 @@ impl Tracker {
             return self.redetect(frame);
         }
         let t0 = Instant::now();
-        let x = self.search_crop(frame)?;
+        let st = self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))?;
+        let x = self.cropper.search_input(frame, st.center, st.size, &st.template)?;
         let t1 = Instant::now();
-        let st = self.state.as_ref().expect("search_crop checked init");
-        let out = self.plan.search(&x, &st.features)?;
+        let out = self.plan.search_input(x, &st.features)?;
         let t2 = Instant::now();
         let prediction = self.update(frame.width(), frame.height(), &out)?;
         self.timings = StepTimings { crop: t1 - t0, network: t2 - t1, post: t2.elapsed() };
