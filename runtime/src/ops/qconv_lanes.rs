@@ -82,6 +82,19 @@ impl QLanePack {
             let offset = &self.offset[b * oc..(b + 1) * oc];
             let scale = &self.scale[b * oc..(b + 1) * oc];
             let vector = cfg!(target_arch = "x86_64") && crate::isa().avx512;
+            #[cfg(target_arch = "x86_64")]
+            if vector && g.wp == g.ow {
+                // No wide columns (a 1x1 layer): the item's positions are consecutive outputs.
+                let p0 = first * px;
+                let n = (count * px).min(g.positions() - p0);
+                // SAFETY: the CPU has AVX-512F; `sums` holds `n` positions of `oc` values;
+                // channels `b·oc .. b·oc + rows < co` at positions `p0 .. p0 + n <= plane` are
+                // within `out` (asserted) and this item's alone.
+                unsafe {
+                    requant_transposed(&sums[..n * oc], oc, rows, offset, scale, y0, dst.at(b * oc * plane + p0), plane)
+                };
+                return;
+            }
             let mut bytes = vec![0u8; oc];
             for (s, at) in outputs(g, &sums, oc, px, first) {
                 requantise_lanes(vector, s, offset, scale, y0, &mut bytes);
@@ -132,6 +145,87 @@ unsafe fn requant16_lanes(sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, o
         );
         let f = _mm512_min_ps(_mm512_max_ps(f, _mm512_setzero_ps()), _mm512_set1_ps(255.0));
         _mm_storeu_si128(out.as_mut_ptr().cast(), _mm512_cvtepi32_epi8(_mm512_cvttps_epi32(f)));
+    }
+}
+
+/// [`requantise_lanes`] for `sums` (`[position][oc]`, consecutive output positions), written
+/// channel by channel: sixteen positions' sums transposed (16 x 16 i32), then each channel's
+/// sixteen requantised with its own offset and scale (the same operations, so the same bytes)
+/// and stored as 16 consecutive bytes of its plane (`out + c·plane`): no byte-by-byte scatter.
+///
+/// # Safety
+/// The CPU has AVX-512F; `out + c·plane + k` is writable for every channel `c < rows` and
+/// position `k < sums.len() / oc`; `offset` and `scale` hold `rows` values, rounded up to 16.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn requant_transposed(
+    sums: &[i32],
+    oc: usize,
+    rows: usize,
+    offset: &[i32],
+    scale: &[f32],
+    y0: u8,
+    out: *mut u8,
+    plane: usize,
+) {
+    use std::arch::x86_64::*;
+    let n = sums.len() / oc;
+    assert!(offset.len() >= rows.div_ceil(L) * L && scale.len() >= rows.div_ceil(L) * L && oc.is_multiple_of(L));
+    let (zero, top, y0) = (_mm512_setzero_ps(), _mm512_set1_ps(255.0), _mm512_set1_ps(y0 as f32));
+    for k0 in (0..n).step_by(L) {
+        let m = (n - k0).min(L);
+        let keep = ((1u32 << m) - 1) as __mmask16;
+        for j in 0..rows.div_ceil(L) {
+            let mut r = [_mm512_setzero_ps(); L];
+            for (i, r) in r.iter_mut().enumerate().take(m) {
+                // SAFETY: position k0 + i < n, channels 16j .. 16j + 16 <= oc.
+                *r = unsafe { _mm512_loadu_ps(sums.as_ptr().add((k0 + i) * oc + L * j).cast()) };
+            }
+            transpose(&mut r);
+            for (c, r) in r.iter().enumerate().take((rows - L * j).min(L)) {
+                let ch = L * j + c;
+                let v = _mm512_add_epi32(_mm512_castps_si512(*r), _mm512_set1_epi32(offset[ch]));
+                let f = _mm512_mul_ps(_mm512_cvtepi32_ps(v), _mm512_set1_ps(scale[ch]));
+                let f = _mm512_add_ps(_mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f), y0);
+                let f = _mm512_min_ps(_mm512_max_ps(f, zero), top);
+                // SAFETY: channel ch < rows, positions k0 .. k0 + m (the caller's promise).
+                unsafe {
+                    _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + k0).cast(), keep, _mm512_cvttps_epi32(f))
+                };
+            }
+        }
+    }
+}
+
+/// Transpose sixteen 16-lane rows in place (`r[i][j]` becomes `r[j][i]`; the lanes' bits as they
+/// are): pairs interleaved, then quads, then 128-bit lanes twice.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+fn transpose(r: &mut [std::arch::x86_64::__m512; 16]) {
+    use std::arch::x86_64::*;
+    let mut t = [_mm512_setzero_ps(); 16];
+    for i in 0..8 {
+        t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+        t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+    }
+    for i in 0..4 {
+        let (a, b, c, d) = (t[4 * i], t[4 * i + 1], t[4 * i + 2], t[4 * i + 3]);
+        r[4 * i] = _mm512_shuffle_ps::<0x44>(a, c);
+        r[4 * i + 1] = _mm512_shuffle_ps::<0xEE>(a, c);
+        r[4 * i + 2] = _mm512_shuffle_ps::<0x44>(b, d);
+        r[4 * i + 3] = _mm512_shuffle_ps::<0xEE>(b, d);
+    }
+    for g in [0, 8] {
+        for j in 0..4 {
+            t[g + j] = _mm512_shuffle_f32x4::<0x88>(r[g + j], r[g + j + 4]);
+            t[g + j + 4] = _mm512_shuffle_f32x4::<0xDD>(r[g + j], r[g + j + 4]);
+        }
+    }
+    for j in 0..8 {
+        r[j] = _mm512_shuffle_f32x4::<0x88>(t[j], t[j + 8]);
+        r[j + 8] = _mm512_shuffle_f32x4::<0xDD>(t[j], t[j + 8]);
     }
 }
 
@@ -211,6 +305,31 @@ unsafe fn tiles_vnni<const V: usize, const P: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn transposes_sixteen_rows() {
+        if !crate::isa().avx512 {
+            eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): the 16 x 16 transpose is NOT tested here");
+            return;
+        }
+        use std::arch::x86_64::*;
+        let m: Vec<f32> = (0..256).map(|i| i as f32).collect();
+        // SAFETY: the CPU has AVX-512F (checked above); every load and store is 16 of the 256.
+        unsafe {
+            let mut r: [__m512; 16] = std::array::from_fn(|i| _mm512_loadu_ps(m.as_ptr().add(16 * i)));
+            transpose(&mut r);
+            let mut out = vec![0f32; 256];
+            for (i, r) in r.iter().enumerate() {
+                _mm512_storeu_ps(out.as_mut_ptr().add(16 * i), *r);
+            }
+            for i in 0..16 {
+                for j in 0..16 {
+                    assert_eq!(out[i * 16 + j], m[j * 16 + i], "({i}, {j})");
+                }
+            }
+        }
+    }
 
     /// The dispatched tiles and requantisation give the portable ones' bytes, for both tile
     /// shapes, with a partial block and several chunks of tap groups.
