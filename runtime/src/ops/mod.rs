@@ -320,6 +320,9 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         | "AttnScores" | "AttnMix" | "RowSoftmax" | "QuantizeU8" | "SqueezeExcite" => {
             crate::isa::f32_kernel().name().to_string()
         }
+        // The operator's info says which (AMX serves only kernels larger than 1x1).
+        "PackedQConv" if info.contains("on AMX") => "amx".to_string(),
+        "PackedQConv" if info.contains("VNNI") => "vnni".to_string(),
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
         "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" => "portable (vectorised)".to_string(),
         _ => info

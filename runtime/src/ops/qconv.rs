@@ -279,6 +279,11 @@ fn words_path() -> Option<WordsPath> {
 }
 
 /// Whether a [`PackedQConv`] can run here.
+/// Whether the words path is VNNI's (whose tiles in lanes serve 1x1 layers).
+fn has_vnni_words() -> bool {
+    words_path() == Some(WordsPath::Vnni)
+}
+
 fn has_words_path() -> bool {
     words_path().is_some()
 }
@@ -454,8 +459,12 @@ impl PackedQConv {
             scale[o] = q.x_scale * q.k_scale[o] / q.y_scale;
         }
         let word = |b: &[i8; 4]| i32::from_ne_bytes(b.map(|v| v as u8));
-        // AMX's tiles read the padded input row by row: stride 1 only.
-        let amx = (crate::isa().amx && shape.stride == 1).then(|| Arc::new(AmxWeights::new(&shape, kernel)));
+        // AMX's tiles read the padded input row by row: stride 1 only. Not for 1x1 layers:
+        // there the VNNI tile in lanes (its requantisation written channel by channel) was
+        // faster (NanoTrack's int8 step 1.9 -> 1.76 ms; PRL-Track's patch embeddings no slower).
+        let one_by_one = shape.kh * shape.kw == 1 && QLanePack::registers_for(co).is_some() && has_vnni_words();
+        let amx =
+            (crate::isa().amx && shape.stride == 1 && !one_by_one).then(|| Arc::new(AmxWeights::new(&shape, kernel)));
         let lanes = match QLanePack::registers_for(co) {
             Some(v) if amx.is_none() && words_path() == Some(WordsPath::Vnni) => {
                 let by_channel: Vec<i32> = by_channel.iter().map(word).collect();
