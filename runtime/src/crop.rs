@@ -47,14 +47,18 @@ pub fn get_subwindow(frame: &Frame, center: (f64, f64), model_sz: usize, origina
 
 /// Interleaved BGR bytes of a `side`x`side` crop as the network's float NCHW input.
 pub fn crop_to_tensor(crop: &[u8], side: usize) -> Vec<f32> {
-    let plane = side * side;
-    let mut out = vec![0f32; 3 * plane];
-    for (i, p) in crop.chunks_exact(3).enumerate() {
-        for c in 0..3 {
-            out[c * plane + i] = p[c] as f32;
-        }
-    }
+    let mut out = vec![0f32; 3 * side * side];
+    write_planes(crop, side, &mut out);
     out
+}
+
+/// The crop's pixels into `out`'s three planes of `side²` (B, G, R).
+fn write_planes(crop: &[u8], side: usize, out: &mut [f32]) {
+    let (b, rest) = out.split_at_mut(side * side);
+    let (g, r) = rest.split_at_mut(side * side);
+    for (i, p) in crop.chunks_exact(3).enumerate() {
+        (b[i], g[i], r[i]) = (p[0] as f32, p[1] as f32, p[2] as f32);
+    }
 }
 
 /// [`crop_to_tensor`] straight into the tensor the search graph takes (`[1, 3, side, side]`):
@@ -73,11 +77,7 @@ pub(crate) fn crop_to_input(crop: &[u8], side: usize) -> crate::Result<tract_nne
     {
         let mut plain = t.try_as_plain_ram_mut().map_err(|e| crate::Error::Input(format!("crop tensor: {e}")))?;
         let out = plain.as_slice_mut::<f32>().map_err(|e| crate::Error::Input(format!("crop tensor: {e}")))?;
-        let (b, rest) = out.split_at_mut(plane);
-        let (g, r) = rest.split_at_mut(plane);
-        for (i, p) in crop.chunks_exact(3).enumerate() {
-            (b[i], g[i], r[i]) = (p[0] as f32, p[1] as f32, p[2] as f32);
-        }
+        write_planes(crop, side, out);
     }
     Ok(t)
 }

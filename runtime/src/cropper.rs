@@ -91,10 +91,7 @@ impl Cropper {
     /// targets over half the frame, its window side). Float NCHW BGR
     /// `[1, 3, instance_size, instance_size]`.
     pub fn search(&self, frame: &Frame, center: (f64, f64), size: (f64, f64), template: &TemplateCrop) -> Vec<f32> {
-        let s_z = self.search_context(size, frame.width(), frame.height(), template);
-        let side = self.config.instance_size;
-        let s_x = s_z * (side as f64 / self.config.exemplar_size as f64);
-        let crop = get_subwindow(frame, center, side, round_half_even(s_x) as usize, template.channel_average);
+        let (crop, side) = self.search_window(frame, center, size, template);
         crop_to_tensor(&crop, side)
     }
 
@@ -106,10 +103,21 @@ impl Cropper {
         size: (f64, f64),
         template: &TemplateCrop,
     ) -> Result<tract_nnef::prelude::Tensor> {
+        let (crop, side) = self.search_window(frame, center, size, template);
+        crate::crop::crop_to_input(&crop, side)
+    }
+
+    /// The search crop's BGR bytes and side (the official geometry, before conversion).
+    fn search_window(
+        &self,
+        frame: &Frame,
+        center: (f64, f64),
+        size: (f64, f64),
+        template: &TemplateCrop,
+    ) -> (Vec<u8>, usize) {
         let s_z = self.search_context(size, frame.width(), frame.height(), template);
         let side = self.config.instance_size;
         let s_x = s_z * (side as f64 / self.config.exemplar_size as f64);
-        let crop = get_subwindow(frame, center, side, round_half_even(s_x) as usize, template.channel_average);
-        crate::crop::crop_to_input(&crop, side)
+        (get_subwindow(frame, center, side, round_half_even(s_x) as usize, template.channel_average), side)
     }
 }

@@ -258,7 +258,7 @@ impl Tracker {
             return self.redetect(frame);
         }
         let t0 = Instant::now();
-        let st = self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))?;
+        let st = self.tracked()?;
         let x = self.cropper.search_input(frame, st.center, st.size, &st.template)?;
         let t1 = Instant::now();
         let out = self.plan.search_input(x, &st.features)?;
@@ -309,8 +309,13 @@ impl Tracker {
     /// The search graph's input for `frame` around the current target, as the official
     /// `track` cuts it (float NCHW BGR).
     pub fn search_crop(&self, frame: &Frame) -> Result<Vec<f32>> {
-        let st = self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))?;
+        let st = self.tracked()?;
         Ok(self.cropper.search(frame, st.center, st.size, &st.template))
+    }
+
+    /// The target's state, or the error for tracking before `init`.
+    fn tracked(&self) -> Result<&State> {
+        self.state.as_ref().ok_or_else(|| Error::Input("track called before init".into()))
     }
 
     /// The cell of the score map `update` would pick for `out` from the current state (the

@@ -77,6 +77,27 @@ impl Activation {
         }
     }
 
+    /// [`Self::apply`] on the 16 values of `y` (in registers: what the AVX-512 tiles apply
+    /// before they store; the same operations in the same order).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub fn apply_avx512(&self, y: std::arch::x86_64::__m512) -> std::arch::x86_64::__m512 {
+        use std::arch::x86_64::*;
+        let mut y = y;
+        if self.clamps() {
+            y = _mm512_min_ps(_mm512_max_ps(y, _mm512_set1_ps(self.lo)), _mm512_set1_ps(self.hi));
+        }
+        if self.hard_swish {
+            let r6 = _mm512_min_ps(
+                _mm512_max_ps(_mm512_add_ps(y, _mm512_set1_ps(3.0)), _mm512_setzero_ps()),
+                _mm512_set1_ps(6.0),
+            );
+            y = _mm512_mul_ps(_mm512_mul_ps(y, r6), _mm512_set1_ps(1.0 / 6.0));
+        }
+        y
+    }
+
     /// How `info` describes it.
     pub fn describe(&self) -> String {
         match (self.clamps(), self.hard_swish) {

@@ -198,9 +198,6 @@ unsafe fn positions_avx512_fused(
 ) {
     use std::arch::x86_64::*;
     let tiles = l.positions().div_ceil(MAX_PX);
-    let (lo, hi) = (_mm512_set1_ps(act.lo), _mm512_set1_ps(act.hi));
-    let (three, six, zero, sixth) =
-        (_mm512_set1_ps(3.0), _mm512_set1_ps(6.0), _mm512_setzero_ps(), _mm512_set1_ps(1.0 / 6.0));
     for tile in 0..tiles {
         let mut acc = [[0f32; MAX_PX]; ROWS];
         // SAFETY: `channel_block` asserted every tap's tile in `padded`; `weights` holds
@@ -213,14 +210,7 @@ unsafe fn positions_avx512_fused(
             for q in 0..MAX_PX / 16 {
                 // SAFETY: 16 values of a row of MAX_PX.
                 let p = unsafe { row.as_mut_ptr().add(16 * q) };
-                let mut y = _mm512_add_ps(unsafe { _mm512_loadu_ps(p) }, b);
-                if act.clamps() {
-                    y = _mm512_min_ps(_mm512_max_ps(y, lo), hi);
-                }
-                if act.hard_swish {
-                    let r6 = _mm512_min_ps(_mm512_max_ps(_mm512_add_ps(y, three), zero), six);
-                    y = _mm512_mul_ps(_mm512_mul_ps(y, r6), sixth);
-                }
+                let y = act.apply_avx512(_mm512_add_ps(unsafe { _mm512_loadu_ps(p) }, b));
                 // SAFETY: as above.
                 unsafe { _mm512_storeu_ps(p, y) };
             }

@@ -248,9 +248,10 @@ mod kernel {
     }
 
     /// The portable form; `FUSED` uses fused multiply-adds (only where the CPU has them:
-    /// elsewhere `mul_add` is a library call). Rows go four at a time, in blocks of 32 columns,
-    /// then 16 (a 16x16 map wastes nothing), then 8 for what is left; the last block of a row computes past its end into
-    /// the scratch's slack and keeps only the columns that exist.
+    /// elsewhere `mul_add` is a library call). Rows go four at a time (eight on maps up to 8
+    /// wide), in blocks of 32 columns, then 16 (a 16x16 map wastes nothing), then 8 for what is
+    /// left; the last block of a row computes past its end into the scratch's slack and keeps
+    /// only the columns that exist.
     #[inline(always)]
     pub(super) fn rows_generic<const FUSED: bool>(
         src: &[f32],

@@ -216,20 +216,10 @@ unsafe fn tile_avx512(
             }
         }
     }
-    let (lo, hi) = (_mm512_set1_ps(act.lo), _mm512_set1_ps(act.hi));
-    let (three, six, zero, sixth) =
-        (_mm512_set1_ps(3.0), _mm512_set1_ps(6.0), _mm512_setzero_ps(), _mm512_set1_ps(1.0 / 6.0));
     for (r, (acc, b)) in acc.into_iter().zip(bias).enumerate().take(rows) {
         let b = _mm512_set1_ps(b);
         for (v, a) in acc.into_iter().enumerate() {
-            let mut y = _mm512_add_ps(a, b);
-            if act.clamps() {
-                y = _mm512_min_ps(_mm512_max_ps(y, lo), hi);
-            }
-            if act.hard_swish {
-                let r6 = _mm512_min_ps(_mm512_max_ps(_mm512_add_ps(y, three), zero), six);
-                y = _mm512_mul_ps(_mm512_mul_ps(y, r6), sixth);
-            }
+            let y = act.apply_avx512(_mm512_add_ps(a, b));
             // SAFETY: row r < rows, 16 floats at column 16·v < NB (the caller's promise).
             unsafe { _mm512_storeu_ps(out.add(r * ldo + v * 16), y) };
         }

@@ -278,12 +278,12 @@ fn words_path() -> Option<WordsPath> {
     }
 }
 
-/// Whether a [`PackedQConv`] can run here.
 /// Whether the words path is VNNI's (whose tiles in lanes serve 1x1 layers).
 fn has_vnni_words() -> bool {
     words_path() == Some(WordsPath::Vnni)
 }
 
+/// Whether a [`PackedQConv`] can run here.
 fn has_words_path() -> bool {
     words_path().is_some()
 }
@@ -466,7 +466,7 @@ impl PackedQConv {
         let amx =
             (crate::isa().amx && shape.stride == 1 && !one_by_one).then(|| Arc::new(AmxWeights::new(&shape, kernel)));
         let lanes = match QLanePack::registers_for(co) {
-            Some(v) if amx.is_none() && words_path() == Some(WordsPath::Vnni) => {
+            Some(v) if amx.is_none() && has_vnni_words() => {
                 let by_channel: Vec<i32> = by_channel.iter().map(word).collect();
                 Some(Arc::new(QLanePack::new(&by_channel, groups, co, v, &offset, &scale)))
             }

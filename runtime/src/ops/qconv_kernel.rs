@@ -30,13 +30,29 @@ pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, y0: u8, o
 #[target_feature(enable = "avx512f")]
 pub(super) fn requant16(v: std::arch::x86_64::__m512i, offset: i32, scale: f32, y0: u8) -> std::arch::x86_64::__m128i {
     use std::arch::x86_64::*;
-    let f = _mm512_mul_ps(_mm512_cvtepi32_ps(_mm512_add_epi32(v, _mm512_set1_epi32(offset))), _mm512_set1_ps(scale));
+    _mm512_cvtepi32_epi8(requant_lanes(v, _mm512_set1_epi32(offset), _mm512_set1_ps(scale), y0))
+}
+
+/// The requantisation of 16 sums, each lane with its own offset and scale, as i32 values in
+/// `0..=255` (what every AVX-512 path narrows to bytes): `sat_u8(round_half_even((v + offset) ·
+/// scale) + y0)`, the scalar formula's operations in its order.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+pub(super) fn requant_lanes(
+    v: std::arch::x86_64::__m512i,
+    offset: std::arch::x86_64::__m512i,
+    scale: std::arch::x86_64::__m512,
+    y0: u8,
+) -> std::arch::x86_64::__m512i {
+    use std::arch::x86_64::*;
+    let f = _mm512_mul_ps(_mm512_cvtepi32_ps(_mm512_add_epi32(v, offset)), scale);
     let f = _mm512_add_ps(
         _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f),
         _mm512_set1_ps(y0 as f32),
     );
     let f = _mm512_min_ps(_mm512_max_ps(f, _mm512_setzero_ps()), _mm512_set1_ps(255.0));
-    _mm512_cvtepi32_epi8(_mm512_cvttps_epi32(f))
+    _mm512_cvttps_epi32(f)
 }
 
 /// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`, the portable form

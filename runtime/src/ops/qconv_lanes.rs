@@ -10,6 +10,8 @@
 
 use super::conv_kernel::Layout;
 use super::conv_lanes::{for_each_item, outputs, Lanes};
+#[cfg(target_arch = "x86_64")]
+use super::qconv_kernel::requant_lanes;
 use super::SyncPtr;
 
 /// Output channels per register.
@@ -128,8 +130,8 @@ fn requantise_lanes(vector: bool, sums: &[i32], offset: &[i32], scale: &[f32], y
     }
 }
 
-/// [`requantise_lanes`] on 16 lanes (the operations of `qconv_kernel::requant16`, with a
-/// vector of offsets and one of scales).
+/// [`requantise_lanes`] on 16 lanes ([`requant_lanes`] with a vector of offsets and one of
+/// scales).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn requant16_lanes(sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, out: &mut [u8]) {
@@ -137,20 +139,15 @@ unsafe fn requant16_lanes(sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, o
     assert!(sums.len() == L && offset.len() == L && scale.len() == L && out.len() == L);
     // SAFETY: 16 values in and out (asserted).
     unsafe {
-        let v = _mm512_add_epi32(_mm512_loadu_si512(sums.as_ptr().cast()), _mm512_loadu_si512(offset.as_ptr().cast()));
-        let f = _mm512_mul_ps(_mm512_cvtepi32_ps(v), _mm512_loadu_ps(scale.as_ptr()));
-        let f = _mm512_add_ps(
-            _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f),
-            _mm512_set1_ps(y0 as f32),
-        );
-        let f = _mm512_min_ps(_mm512_max_ps(f, _mm512_setzero_ps()), _mm512_set1_ps(255.0));
-        _mm_storeu_si128(out.as_mut_ptr().cast(), _mm512_cvtepi32_epi8(_mm512_cvttps_epi32(f)));
+        let (v, o) = (_mm512_loadu_si512(sums.as_ptr().cast()), _mm512_loadu_si512(offset.as_ptr().cast()));
+        let q = requant_lanes(v, o, _mm512_loadu_ps(scale.as_ptr()), y0);
+        _mm_storeu_si128(out.as_mut_ptr().cast(), _mm512_cvtepi32_epi8(q));
     }
 }
 
 /// [`requantise_lanes`] for `sums` (`[position][oc]`, consecutive output positions), written
 /// channel by channel: sixteen positions' sums transposed (16 x 16 i32), then each channel's
-/// sixteen requantised with its own offset and scale (the same operations, so the same bytes)
+/// sixteen requantised with its own offset and scale ([`requant_lanes`], so the same bytes)
 /// and stored as 16 consecutive bytes of its plane (`out + c·plane`): no byte-by-byte scatter.
 ///
 /// # Safety
@@ -172,7 +169,6 @@ unsafe fn requant_transposed(
     use std::arch::x86_64::*;
     let n = sums.len() / oc;
     assert!(offset.len() >= rows.div_ceil(L) * L && scale.len() >= rows.div_ceil(L) * L && oc.is_multiple_of(L));
-    let (zero, top, y0) = (_mm512_setzero_ps(), _mm512_set1_ps(255.0), _mm512_set1_ps(y0 as f32));
     for k0 in (0..n).step_by(L) {
         let m = (n - k0).min(L);
         let keep = ((1u32 << m) - 1) as __mmask16;
@@ -185,14 +181,10 @@ unsafe fn requant_transposed(
             transpose(&mut r);
             for (c, r) in r.iter().enumerate().take((rows - L * j).min(L)) {
                 let ch = L * j + c;
-                let v = _mm512_add_epi32(_mm512_castps_si512(*r), _mm512_set1_epi32(offset[ch]));
-                let f = _mm512_mul_ps(_mm512_cvtepi32_ps(v), _mm512_set1_ps(scale[ch]));
-                let f = _mm512_add_ps(_mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f), y0);
-                let f = _mm512_min_ps(_mm512_max_ps(f, zero), top);
+                let (o, c) = (_mm512_set1_epi32(offset[ch]), _mm512_set1_ps(scale[ch]));
+                let q = requant_lanes(_mm512_castps_si512(*r), o, c, y0);
                 // SAFETY: channel ch < rows, positions k0 .. k0 + m (the caller's promise).
-                unsafe {
-                    _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + k0).cast(), keep, _mm512_cvttps_epi32(f))
-                };
+                unsafe { _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + k0).cast(), keep, q) };
             }
         }
     }
