@@ -140,13 +140,16 @@ impl Isa {
         F32_KERNELS.iter().find(|(_, needs)| needs(self)).map(|(k, _)| *k).unwrap_or(F32Kernel::Portable)
     }
 
-    /// The int8 convolution path of [`crate::PackedQConv`]: `amx`, `vnni`, `sdot` (aarch64's
-    /// dot product), or `None` (tract's own integer matrix kernels run the int8 layers).
+    /// The int8 convolution path of [`crate::PackedQConv`]: `amx`, `vnni`, `avx2`, `sdot`
+    /// (aarch64's dot product), or `None` (tract's own integer matrix kernels run the int8
+    /// layers).
     pub fn int8_kernel(&self) -> Option<&'static str> {
         if self.amx {
             Some("amx")
         } else if self.vnni {
             Some("vnni")
+        } else if self.avx2_fma {
+            Some("avx2")
         } else if self.dotprod {
             Some("sdot")
         } else {
@@ -214,6 +217,8 @@ mod tests {
         assert_eq!(arm.capped("generic").unwrap().f32_kernel(), F32Kernel::Portable);
         assert_eq!(all.int8_kernel(), Some("amx"));
         assert_eq!(v.int8_kernel(), Some("vnni"));
+        assert_eq!(a.int8_kernel(), Some("avx2"));
+        assert_eq!(g.int8_kernel(), None);
         assert_eq!(arm.int8_kernel(), Some("sdot"));
         assert_eq!(arm.capped("generic").unwrap().int8_kernel(), None);
     }

@@ -6,10 +6,52 @@
 #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
 use super::qconv::{PX, ROWS};
 
-/// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`.
+/// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`: on AVX-512 where
+/// [`crate::isa`] allows it, else on AVX2.
+///
+/// # Safety
+/// The CPU has AVX2 and FMA (every x86 CPU a [`super::PackedQConv`] is made on).
+#[cfg(target_arch = "x86_64")]
+pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
+    if crate::isa().avx512 {
+        // SAFETY: the CPU has AVX-512F.
+        unsafe { requantise_avx512(sums, offset, scale, y0, out) }
+    } else {
+        // SAFETY: the caller guarantees AVX2 and FMA.
+        unsafe { requantise_avx2(sums, offset, scale, y0, out) }
+    }
+}
+
+/// [`requantise`] on 8 lanes (AVX2), bit for bit the scalar formula.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn requantise_avx2(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
+    use std::arch::x86_64::*;
+    let (off, sc, y) = (_mm256_set1_epi32(offset), _mm256_set1_ps(scale), _mm256_set1_ps(y0 as f32));
+    let mut chunks = sums.chunks_exact(8);
+    let mut outs = out.chunks_exact_mut(8);
+    for (s, o) in (&mut chunks).zip(&mut outs) {
+        // SAFETY: 8 i32 in, 8 bytes out.
+        unsafe {
+            let v = _mm256_loadu_si256(s.as_ptr().cast());
+            let f = _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(v, off)), sc);
+            let f = _mm256_add_ps(_mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f), y);
+            let f = _mm256_min_ps(_mm256_max_ps(f, _mm256_setzero_ps()), _mm256_set1_ps(255.0));
+            let i = _mm256_cvttps_epi32(f);
+            // Eight values in 0..=255: narrowing with unsigned saturation keeps them.
+            let w = _mm_packus_epi32(_mm256_castsi256_si128(i), _mm256_extracti128_si256::<1>(i));
+            _mm_storel_epi64(o.as_mut_ptr().cast(), _mm_packus_epi16(w, w));
+        }
+    }
+    for (o, &s) in outs.into_remainder().iter_mut().zip(chunks.remainder()) {
+        *o = (((s + offset) as f32 * scale).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8;
+    }
+}
+
+/// [`requantise`] on 16 lanes (AVX-512).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
+unsafe fn requantise_avx512(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
     use std::arch::x86_64::*;
     let mut chunks = sums.chunks_exact(16);
     let mut outs = out.chunks_exact_mut(16);
@@ -101,6 +143,55 @@ pub(super) unsafe fn tiles_vnni(words: &[u32], taps: &[usize], weights: &[i32], 
             }
         }
     }
+}
+
+/// A weight word `[w0, w1, w2, w3]` (i8) as the two i32 words of i16 pairs [`tiles_avx2`]
+/// multiplies: `[w0, w2]` and `[w1, w3]`, each sign-extended.
+pub(super) fn avx2_pairs(word: i32) -> [i32; 2] {
+    let [w0, w1, w2, w3] = word.to_ne_bytes().map(|b| b as i8 as i16 as u16 as u32);
+    [(w0 | (w2 << 16)) as i32, (w1 | (w3 << 16)) as i32]
+}
+
+/// `sums[tile][r][q]` as [`tiles_vnni`] gives them (the same i32 sums), on AVX2 without VNNI:
+/// each input word's four bytes are split into two words of two u16 (bytes 0 and 2, bytes 1
+/// and 3), and `vpmaddwd` multiplies them exactly by the weight's matching i16 pairs
+/// (`pairs`: [`avx2_pairs`] of every weight word, `[tap][r][2]`). A tile's 32 positions go 8
+/// at a time: 8 accumulators (one per output channel), one input load per tap.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+pub(super) unsafe fn tiles_avx2(words: &[u32], taps: &[usize], pairs: &[i32], positions: usize, sums: &mut [i32]) {
+    use std::arch::x86_64::*;
+    let low_bytes = _mm256_set1_epi32(0x00ff_00ff);
+    for (tile, sums) in sums.chunks_exact_mut(PX * ROWS).enumerate().take(positions.div_ceil(PX)) {
+        for sub in 0..PX / 8 {
+            // SAFETY: the caller guarantees every tile's `PX` words from each tap are in
+            // `words`; `pairs` holds `2·ROWS` words per tap; `sums` holds a whole tile.
+            unsafe {
+                let base = words.as_ptr().add(tile * PX + sub * 8).cast::<i32>();
+                let mut a = [_mm256_setzero_si256(); ROWS];
+                let mut w = pairs.as_ptr();
+                for &t in taps {
+                    let x = _mm256_loadu_si256(base.add(t).cast());
+                    let (lo, hi) = (_mm256_and_si256(x, low_bytes), _mm256_srli_epi16::<8>(x));
+                    for (r, a) in a.iter_mut().enumerate() {
+                        let p = _mm256_madd_epi16(lo, _mm256_set1_epi32(*w.add(2 * r)));
+                        let q = _mm256_madd_epi16(hi, _mm256_set1_epi32(*w.add(2 * r + 1)));
+                        *a = _mm256_add_epi32(*a, _mm256_add_epi32(p, q));
+                    }
+                    w = w.add(2 * ROWS);
+                }
+                let s = sums.as_mut_ptr();
+                for (r, a) in a.iter().enumerate() {
+                    _mm256_storeu_si256(s.add(r * PX + sub * 8).cast(), *a);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+pub(super) unsafe fn tiles_avx2(_: &[u32], _: &[usize], _: &[i32], _: usize, _: &mut [i32]) {
+    unreachable!("the AVX2 words path is x86_64's")
 }
 
 #[cfg(not(target_arch = "x86_64"))]
