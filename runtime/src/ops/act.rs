@@ -57,6 +57,17 @@ impl Activation {
             // SAFETY: the CPU has AVX-512F (the table's needs).
             return unsafe { self.apply_all_avx512(xs) };
         }
+        #[cfg(target_arch = "x86_64")]
+        if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx2Fma {
+            // SAFETY: the CPU has AVX2 and FMA (the table's needs).
+            return unsafe { self.apply_all_avx2(xs) };
+        }
+        self.apply_all_inline(xs)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn apply_all_avx2(&self, xs: &mut [f32]) {
         self.apply_all_inline(xs)
     }
 
@@ -94,6 +105,27 @@ impl Activation {
                 _mm512_set1_ps(6.0),
             );
             y = _mm512_mul_ps(_mm512_mul_ps(y, r6), _mm512_set1_ps(1.0 / 6.0));
+        }
+        y
+    }
+
+    /// [`Self::apply`] on the 8 values of `y` (AVX2: what the AVX2 tiles apply before they
+    /// store; the operations of [`Self::apply_avx512`]).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    pub fn apply_avx2(&self, y: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
+        use std::arch::x86_64::*;
+        let mut y = y;
+        if self.clamps() {
+            y = _mm256_min_ps(_mm256_max_ps(y, _mm256_set1_ps(self.lo)), _mm256_set1_ps(self.hi));
+        }
+        if self.hard_swish {
+            let r6 = _mm256_min_ps(
+                _mm256_max_ps(_mm256_add_ps(y, _mm256_set1_ps(3.0)), _mm256_setzero_ps()),
+                _mm256_set1_ps(6.0),
+            );
+            y = _mm256_mul_ps(_mm256_mul_ps(y, r6), _mm256_set1_ps(1.0 / 6.0));
         }
         y
     }

@@ -67,6 +67,9 @@ fn deinterleave(row: &[f32], even: &mut [f32], odd: &mut [f32]) {
     let done = if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 {
         // SAFETY: the CPU has AVX-512F (the table's needs); the lengths are asserted above.
         unsafe { deinterleave_avx512(row, even, odd) }
+    } else if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx2Fma {
+        // SAFETY: the CPU has AVX2 (the table's needs); the lengths are asserted above.
+        unsafe { deinterleave_avx2(row, even, odd) }
     } else {
         0
     };
@@ -103,6 +106,34 @@ unsafe fn deinterleave_avx512(row: &[f32], even: &mut [f32], odd: &mut [f32]) ->
         }
     }
     16 * blocks
+}
+
+/// [`deinterleave`] 16 values at a time on AVX2 (two loads; two in-lane shuffles and two
+/// 64-bit permutes); returns how many pairs it wrote (a multiple of 8).
+///
+/// # Safety
+/// The CPU has AVX2; `even` and `odd` hold at least `row.len() / 2` values.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn deinterleave_avx2(row: &[f32], even: &mut [f32], odd: &mut [f32]) -> usize {
+    use std::arch::x86_64::*;
+    let blocks = row.len() / 16;
+    for b in 0..blocks {
+        // SAFETY: 16 values of `row` from 16·b (b < len / 16), 8 of `even` and `odd` from 8·b
+        // (they hold len / 2 >= 8·blocks).
+        unsafe {
+            let lo = _mm256_loadu_ps(row.as_ptr().add(16 * b));
+            let hi = _mm256_loadu_ps(row.as_ptr().add(16 * b + 8));
+            // Per 128-bit lane: [lo0 lo2 hi0 hi2 | lo4 lo6 hi4 hi6]; the permute puts the
+            // 64-bit pairs in order.
+            let e = _mm256_shuffle_ps::<0b10_00_10_00>(lo, hi);
+            let o = _mm256_shuffle_ps::<0b11_01_11_01>(lo, hi);
+            let order = |v: __m256| _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(v)));
+            _mm256_storeu_ps(even.as_mut_ptr().add(8 * b), order(e));
+            _mm256_storeu_ps(odd.as_mut_ptr().add(8 * b), order(o));
+        }
+    }
+    8 * blocks
 }
 
 /// The stride-2 form of [`ConvShape::pad_plane`] for a whole plane on AVX-512: each of `rows`

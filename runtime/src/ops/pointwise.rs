@@ -239,8 +239,35 @@ unsafe fn tile_fma(
     ldo: usize,
     rows: usize,
 ) {
-    // SAFETY: the caller's promise, passed on.
-    unsafe { tile_generic::<true>(panel, x, ldx, bias, act, out, ldo, rows) }
+    use std::arch::x86_64::*;
+    let k = panel.len() / MR;
+    let (w, xp) = (panel.as_ptr(), x.as_ptr());
+    // 16-column quarters: MR x 2 accumulators (12 of the 16 registers), the sums in order of k
+    // as every path takes them; bias and activation in registers.
+    for q in 0..NB / 16 {
+        let mut acc = [[_mm256_setzero_ps(); 2]; MR];
+        for i in 0..k {
+            // SAFETY: i < k: the panel holds k rows of MR, x k rows of NB values ldx apart
+            // (asserted by `tile`).
+            unsafe {
+                let x0 = _mm256_loadu_ps(xp.add(i * ldx + q * 16));
+                let x1 = _mm256_loadu_ps(xp.add(i * ldx + q * 16 + 8));
+                for (r, acc) in acc.iter_mut().enumerate() {
+                    let c = _mm256_set1_ps(*w.add(i * MR + r));
+                    acc[0] = _mm256_fmadd_ps(c, x0, acc[0]);
+                    acc[1] = _mm256_fmadd_ps(c, x1, acc[1]);
+                }
+            }
+        }
+        for (r, (acc, b)) in acc.into_iter().zip(bias).enumerate().take(rows) {
+            let b = _mm256_set1_ps(b);
+            for (v, a) in acc.into_iter().enumerate() {
+                let y = act.apply_avx2(_mm256_add_ps(a, b));
+                // SAFETY: row r < rows, 8 floats at column 16·q + 8·v < NB (the caller's promise).
+                unsafe { _mm256_storeu_ps(out.add(r * ldo + q * 16 + v * 8), y) };
+            }
+        }
+    }
 }
 
 /// [`tile`] in 16-column quarters of `MR x 16` accumulators (24 NEON registers; vectorised by

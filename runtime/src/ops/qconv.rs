@@ -235,6 +235,18 @@ impl PackedQConv {
                 #[cfg(not(target_arch = "aarch64"))]
                 WordsPath::Sdot => unreachable!("SDOT is aarch64's"),
             }
+            if wq == ow {
+                // No wide columns (a 1x1 layer without padding): each tile's row of sums is
+                // `PX` consecutive outputs, requantised where it lies (a gather value by value
+                // cost as much as the products on AVX2).
+                for (r, out) in out.chunks_exact_mut(plane).enumerate() {
+                    for (tile, out) in out.chunks_mut(PX).enumerate() {
+                        let at = tile * PX * ROWS + r * PX;
+                        requant(b * ROWS + r, &sums[at..at + out.len()], out);
+                    }
+                }
+                return;
+            }
             let mut row = vec![0i32; ow];
             for (r, out) in out.chunks_exact_mut(plane).enumerate() {
                 for (y, out) in out.chunks_exact_mut(ow).enumerate() {

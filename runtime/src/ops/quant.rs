@@ -84,7 +84,27 @@ mod kernel {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn quantize_avx2(xs: &[f32], ys: &mut [u8], scale: f32, zp: i32) {
-        quantize_generic(xs, ys, scale, zp)
+        // [`quantize_avx512`]'s steps on 8 values (the compiler's form of `one` converted one
+        // value at a time: NanoTrack's int8 step spent 1 ms of 6.2 here on an AMD EPYC).
+        use std::arch::x86_64::*;
+        let n = xs.len().min(ys.len());
+        let blocks = n / 8;
+        let (s, z) = (_mm256_set1_ps(scale), _mm256_set1_epi32(zp));
+        let (lo, hi) = (_mm256_set1_ps(-zp as f32), _mm256_set1_ps((255 - zp) as f32));
+        for b in 0..blocks {
+            // SAFETY: 8 values of `xs` and of `ys` from 8·b < n (both hold n or more).
+            unsafe {
+                let x = _mm256_mul_ps(_mm256_loadu_ps(xs.as_ptr().add(8 * b)), s);
+                let r = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(x);
+                let r = _mm256_and_ps(r, _mm256_cmp_ps::<_CMP_ORD_Q>(r, r));
+                let r = _mm256_min_ps(_mm256_max_ps(r, lo), hi);
+                let q = _mm256_add_epi32(_mm256_cvtps_epi32(r), z);
+                // Eight values in 0..=255: narrowing with unsigned saturation keeps them.
+                let w = _mm_packus_epi32(_mm256_castsi256_si128(q), _mm256_extracti128_si256::<1>(q));
+                _mm_storel_epi64(ys.as_mut_ptr().add(8 * b).cast(), _mm_packus_epi16(w, w));
+            }
+        }
+        quantize_generic(&xs[8 * blocks..n], &mut ys[8 * blocks..n], scale, zp)
     }
 
     #[inline(always)]
