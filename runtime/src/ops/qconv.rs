@@ -24,6 +24,8 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::einsum::EinSum;
 use tract_nnef::tract_core::ops::nn::DataFormat;
+use tract_nnef::tract_core::tract_linalg::mmm::RoundingPolicy;
+use tract_nnef::tract_core::tract_linalg::Scaler;
 
 use super::conv_kernel::Layout;
 use super::qconv_amx::AmxWeights;
@@ -67,6 +69,8 @@ pub struct PackedQConv {
     lanes: Option<Arc<QLanePack>>,
     /// The data has a batch axis (NCHW); else it is CHW (tract drops a batch axis of 1).
     batch: bool,
+    /// Where the op is a matrix product (HMG's linear layers): its layouts.
+    matmul: Option<Arc<Product>>,
 }
 
 impl std::fmt::Debug for PackedQConv {
@@ -82,6 +86,7 @@ impl PartialEq for PackedQConv {
             && self.offset == other.offset
             && same_bits(&self.scale, &other.scale)
             && (self.x0, self.y0, self.out_dt, self.batch) == (other.x0, other.y0, other.out_dt, other.batch)
+            && self.matmul == other.matmul
             && self.amx.is_some() == other.amx.is_some()
             && self.lanes.as_ref().map(|l| l.values()) == other.lanes.as_ref().map(|l| l.values())
     }
@@ -116,6 +121,9 @@ impl EvalOp for PackedQConv {
         let input = args_1!(inputs);
         let s = &self.shape;
         ensure!(input.datum_type().unquantized() == u8::datum_type(), "PackedQConv: input is {:?}", input.datum_type());
+        if let Some(product) = &self.matmul {
+            return self.eval_product(product, input);
+        }
         let (n, ci, h, w) = match (self.batch, input.shape()) {
             (true, &[n, ci, h, w]) => (n, ci, h, w),
             (false, &[ci, h, w]) => (1, ci, h, w),
@@ -128,12 +136,7 @@ impl EvalOp for PackedQConv {
         let (oh, ow) = s.out();
         let plane = oh * ow;
         let path = words_path().ok_or_else(|| format_err!("PackedQConv: no integer dot product on this CPU"))?;
-        // The SDOT path's sums lack 128·Σw (its inputs are x − 128).
-        let flip = if path == WordsPath::Sdot { 128 } else { 0 };
-        let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| {
-            // SAFETY: on x86 the op is only made where the CPU has AVX-512 ([`packed_q`]).
-            unsafe { requantise(sums, self.offset[o] + flip * self.wsum[o], self.scale[o], self.y0, bytes) }
-        };
+        let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| self.requant(path, o, sums, bytes);
         let shape: TVec<usize> = if self.batch { tvec![n, s.co, oh, ow] } else { tvec![s.co, oh, ow] };
         let mut t = output_tensor(&shape, |out: &mut [u8]| {
             for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
@@ -150,7 +153,81 @@ impl EvalOp for PackedQConv {
     }
 }
 
+/// The layouts of a [`PackedQConv`] that is a matrix product `M x K` (or `K x M`) by constant
+/// weights into `M x N` (or `N x M`), a leading axis of 1 allowed on either side: run as a 1x1
+/// convolution of `K` channels over `M` positions, transposed in and out where the layout is
+/// tokens first.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct Product {
+    input: TVec<usize>,
+    output: TVec<usize>,
+    /// The input is `[.., M, K]` (else `[.., K, M]`).
+    in_last: bool,
+    /// The output is `[.., M, N]` (else `[.., N, M]`).
+    out_last: bool,
+    /// One scale for every output channel (per-tensor weights, as HMG's): then requantised as
+    /// tract's kernels do it, by the exact product with the scale rounded half to even
+    /// (`tract_linalg::Scaler`), not through an f32 product (they differ by one where the f32
+    /// product rounds onto a half: 2 of 280,000 sums in range at `proj`'s scale). A per-channel
+    /// scale is applied in f32 by tract too (the convolutions' formula).
+    one_scale: bool,
+}
+
 impl PackedQConv {
+    /// Requantise output channel `o`'s `sums` into `bytes`.
+    fn requant(&self, path: WordsPath, o: usize, sums: &[i32], bytes: &mut [u8]) {
+        // The SDOT path's sums lack 128·Σw (its inputs are x − 128).
+        let flip = if path == WordsPath::Sdot { 128 } else { 0 };
+        // SAFETY: on x86 the op is only made where the CPU has AVX2 at least ([`packed_q`]).
+        unsafe { requantise(sums, self.offset[o] + flip * self.wsum[o], self.scale[o], self.y0, bytes) }
+    }
+
+    /// [`EvalOp::eval`] of a matrix product ([`Product`]).
+    fn eval_product(&self, product: &Product, input: TValue) -> TractResult<TVec<TValue>> {
+        let s = &self.shape;
+        ensure!(input.shape() == &*product.input, "PackedQConv: input {:?} for {product:?}", input.shape());
+        let path = words_path().ok_or_else(|| format_err!("PackedQConv: no integer dot product on this CPU"))?;
+        let input = input.try_as_plain_ram()?;
+        // SAFETY: the datum type is u8, possibly with quantisation parameters (the op's match).
+        let input = unsafe { input.as_slice_unchecked::<u8>() };
+        let (ci, m) = (s.ci, s.w);
+        let channels: Vec<u8>;
+        let src = if product.in_last {
+            channels = (0..ci * m).map(|i| input[(i % m) * ci + i / m]).collect();
+            &channels[..]
+        } else {
+            input
+        };
+        let mut planes = vec![0u8; s.co * m];
+        if product.one_scale {
+            let scaler = Scaler::new(self.scale[0], RoundingPolicy::Even);
+            let y0 = self.y0 as i32;
+            let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| {
+                for (b, &v) in bytes.iter_mut().zip(sums) {
+                    *b = ((v + self.offset[o]) * scaler + y0).clamp(0, 255) as u8;
+                }
+            };
+            self.run_words(path, src, requant, &mut planes);
+        } else {
+            self.run_words(path, src, |o, sums, bytes| self.requant(path, o, sums, bytes), &mut planes);
+        }
+        let mut t = output_tensor(&product.output, |out: &mut [u8]| {
+            if product.out_last {
+                for (p, row) in out.chunks_exact_mut(s.co).enumerate() {
+                    for (o, v) in row.iter_mut().enumerate() {
+                        *v = planes[o * m + p];
+                    }
+                }
+            } else {
+                out.copy_from_slice(&planes);
+            }
+            Ok(())
+        })?;
+        // SAFETY: same storage type (u8), the output fact's quantisation parameters.
+        unsafe { t.set_datum_type(self.out_dt) };
+        Ok(tvec!(t.into_tvalue()))
+    }
+
     /// One NCHW image on words of four channels: AVX-512 VNNI, AVX2 or aarch64 SDOT.
     fn run_words(
         &self,
@@ -264,6 +341,9 @@ impl PackedQConv {
 impl TypedOp for PackedQConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
         let (oh, ow) = self.shape.out();
+        if let Some(product) = &self.matmul {
+            return Ok(tvec!(self.out_dt.fact(&*product.output)));
+        }
         if !self.batch {
             return Ok(tvec!(self.out_dt.fact([self.shape.co, oh, ow])));
         }
@@ -338,9 +418,11 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
         return Ok(None);
     }
     let facts = model.node_input_facts(node.id)?;
-    let Some((shape, batch)) = conv_shape(node, &facts).map(|s| (s, true)).or_else(|| pointwise_shape(node, &facts))
-    else {
-        return Ok(None);
+    let conv = conv_shape(node, &facts).map(|s| (s, true)).or_else(|| pointwise_shape(node, &facts));
+    let (shape, batch, matmul) = match (conv, matmul_shape(node, &facts)) {
+        (Some((shape, batch)), _) => (shape, batch, None),
+        (None, Some((shape, product, io))) => (shape, false, Some((product, io))),
+        (None, None) => return Ok(None),
     };
     // Both ops take x, the weights, the bias, then x0, x_scale, w0, w_scale, y0, y_scale.
     let out_dt = node.outputs[0].fact.datum_type;
@@ -369,8 +451,20 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     let kernel = kernel.try_as_plain_ram()?;
     // SAFETY: the kernel's datum type is i8, possibly with quantisation parameters (checked).
     let kernel = unsafe { kernel.as_slice_unchecked::<i8>() };
+    // A product's weights `K x N` are the convolution's `N x K` transposed.
+    let transposed: Vec<i8>;
+    let kernel = match matmul {
+        Some((_, true)) => {
+            transposed = (0..co).flat_map(|o| (0..shape.ci).map(move |c| kernel[c * co + o])).collect();
+            &transposed[..]
+        }
+        _ => kernel,
+    };
     let q = QuantParams { x0, x_scale: x_scale[0], k_scale, y0, y_scale: y_scale[0] };
-    Ok(Some(PackedQConv { batch, ..PackedQConv::new(shape, kernel, &bias, q, out_dt)? }))
+    let op = PackedQConv::new(shape, kernel, &bias, q, out_dt)?;
+    let one_scale = op.scale[..co].iter().all(|v| v.to_bits() == op.scale[0].to_bits());
+    let matmul = matmul.map(|(product, _)| Arc::new(Product { one_scale, ..product }));
+    Ok(Some(PackedQConv { batch, matmul, ..op }))
 }
 
 /// The shape of a quantised NCHW `Conv` with OIHW weights, one group, stride 1 or 2 and no
@@ -434,6 +528,62 @@ fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape,
     };
     let &[co, wi] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
     (wi == ci).then_some((ConvShape { ci, h, w, co, kh: 1, kw: 1, pad: [0; 4], stride: 1 }, batch))
+}
+
+/// The shape of a quantised `EinSum` that is a matrix product by constant weights, HMG's
+/// linear layers (`akm,kn->mn`, `mk,kn->anm`, whatever the letters: the input `[.., K, M]` or
+/// `[.., M, K]`, the weights `K x N` or `N x K`, the output `[.., M, N]` or `[.., N, M]`, a
+/// leading axis of 1 allowed on either side), as a 1x1 [`ConvShape`] of `K` channels on a
+/// 1 x `M` map, with its layouts and whether the weights are `K x N`. Only on the AVX2 words
+/// path: there tract's integer kernel (`avx2_mmm_i32_8x8`) ran PRL-Track's eight such
+/// products at 1.3 GOP/s on an AMD EPYC, 830 of a 1000 ms int8 step; on VNNI and SDOT tract's
+/// kernels serve them and this form was not measured.
+fn matmul_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Product, bool)> {
+    if words_path() != Some(WordsPath::Avx2) {
+        return None;
+    }
+    let einsum = node.op_as::<EinSum>()?;
+    einsum.q_params?;
+    let expr = einsum.axes.to_string();
+    let (inputs, output) = expr.split_once("->")?;
+    let terms: Vec<Vec<char>> = inputs.split(',').map(|t| t.chars().collect()).collect();
+    let out: Vec<char> = output.chars().collect();
+    let [x, w, b, ..] = terms.as_slice() else { return None };
+    let (xr, or) = (x.len(), out.len());
+    if !(2..=3).contains(&xr) || !(2..=3).contains(&or) || w.len() != 2 {
+        return None;
+    }
+    // k: summed (in x and w, not out); m: x's other last axis; n: w's other axis.
+    let k = *x[xr - 2..].iter().find(|c| w.contains(c) && !out.contains(c))?;
+    let m = *x[xr - 2..].iter().find(|&&c| c != k)?;
+    let n = *w.iter().find(|&&c| c != k)?;
+    let (in_last, out_last, io) = (x[xr - 1] == k, out[or - 1] == n, w[0] == k);
+    // A leading axis is of size 1 (checked below) and in no other term.
+    let lone = |c: char| !x.contains(&c) as usize + !w.contains(&c) as usize + !out.contains(&c) as usize >= 2;
+    let product = m != n
+        && out[or - 2..] == if out_last { [m, n] } else { [n, m] }
+        && (xr == 2 || lone(x[0]))
+        && (or == 2 || lone(out[0]))
+        && (b.is_empty() || b.as_slice() == [n])
+        && terms[3..].iter().all(|t| t.is_empty() || t.as_slice() == [n]);
+    if !product || facts.get(2)?.datum_type != i32::datum_type() {
+        return None;
+    }
+    let input: TVec<usize> = facts.first()?.shape.as_concrete()?.into();
+    let output: TVec<usize> = node.outputs[0].fact.shape.as_concrete()?.into();
+    let (ci, positions) = if in_last { (input[xr - 1], input[xr - 2]) } else { (input[xr - 2], input[xr - 1]) };
+    let &[w0, w1] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
+    let (wk, co) = if io { (w0, w1) } else { (w1, w0) };
+    let fits = wk == ci
+        && positions > 0
+        && input[..xr - 2].iter().all(|&d| d == 1)
+        && output[..or - 2].iter().all(|&d| d == 1)
+        && output[or - 2..] == if out_last { [positions, co] } else { [co, positions] };
+    fits.then_some((
+        ConvShape { ci, h: 1, w: positions, co, kh: 1, kw: 1, pad: [0; 4], stride: 1 },
+        Product { input, output, in_last, out_last, one_scale: false },
+        io,
+    ))
 }
 
 /// Zero points and scales of a quantised convolution (weights: zero point 0).
@@ -522,6 +672,7 @@ impl PackedQConv {
             amx,
             lanes,
             batch: true,
+            matmul: None,
         })
     }
 }
@@ -624,7 +775,15 @@ mod tests {
     #[test]
     fn the_einsum_of_a_pointwise_convolution_gives_tract_s_bytes() {
         let run = |expr: &str, x_shape: &[usize], w_shape: &[usize], made: usize| {
-            let (ci, co) = (x_shape[x_shape.len() - 3], w_shape[0]);
+            // The product form (`akm,kn->mn`) has its channels second to last and the weights
+            // `K x N` or `N x K`; the convolutions' have them third to last and `N x K`.
+            let product = expr.ends_with("->mn") || expr.ends_with("->anm");
+            let ci = match (product, expr.starts_with("mk")) {
+                (true, true) => x_shape[x_shape.len() - 1],
+                (true, false) => x_shape[x_shape.len() - 2],
+                _ => x_shape[x_shape.len() - 3],
+            };
+            let co = if product && expr.contains(",kn,") { w_shape[1] } else { w_shape[0] };
             let mut model = TypedModel::default();
             let x = model.add_source("x", u8::fact(x_shape)).unwrap();
             let w: Vec<i8> = (0..w_shape.iter().product()).map(|i: usize| ((i * 104729) % 255) as i32 as i8).collect();
@@ -677,6 +836,57 @@ mod tests {
         // Not a pointwise convolution (the weights' axes the other way round): left alone.
         run("NIHW,IO,O,,,,,,->NOHW", &[1, 24, 5, 7], &[24, 40], 0);
         run("IHW,IO,O,,,,,,->OHW", &[24, 5, 7], &[24, 40], 0);
+        // HMG's linear layers (`akm,kn->mn`, tokens out last), made only on the AVX2 words
+        // path; and without the leading axis.
+        let avx2 = usize::from(words_path() == Some(WordsPath::Avx2));
+        if avx2 == 0 {
+            eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 words path (PRL_ISA=avx2 on an AVX2 machine): NOT tested here");
+        }
+        run("akm,kn,n,,,,,,->mn", &[1, 48, 121], &[48, 72], avx2);
+        run("km,nk,n,,,,,,->mn", &[36, 37], &[20, 36], avx2);
+        // Tokens first in, channels first out, a new leading axis (HMG's `proj` and `fc2`).
+        run("mk,kn,n,,,,,,->anm", &[121, 40], &[40, 24], avx2);
+    }
+
+    /// A product with one scale requantises as tract's kernels: at HMG `proj`'s scales, a sum of
+    /// 48902 is 93.5 as an f32 product and just under it exactly.
+    #[test]
+    fn a_product_with_one_scale_rounds_as_tract_s_kernels() {
+        if words_path() != Some(WordsPath::Avx2) {
+            eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 words path (PRL_ISA=avx2 on an AVX2 machine): its rounding is NOT tested here");
+            return;
+        }
+        let (x_scale, w_scale, y_scale) = (0.0069588f32, 0.0007929764f32, 0.0028860883f32);
+        let scale = x_scale * w_scale / y_scale;
+        let exact = 48902 * Scaler::new(scale, RoundingPolicy::Even);
+        assert_ne!((48902.0 * scale).round_ties_even() as i32, exact, "the case must tell the two roundings apart");
+        let mut model = TypedModel::default();
+        // Inputs at their zero point: every sum is its bias.
+        let x = model.add_source("x", u8::fact([3, 4])).unwrap();
+        let mut konst = |name: &str, t: Tensor| model.add_const(name, t).unwrap();
+        let w = konst("w", Tensor::from_shape(&[4, 4], &[1i8; 16]).unwrap());
+        let b = konst("b", Tensor::from_shape(&[4], &[48902i32, -48902, 48901, 1000]).unwrap());
+        let mut inputs = vec![x, w, b];
+        for (i, t) in
+            [tensor0(5i32), tensor0(x_scale), tensor0(0i32), tensor0(w_scale), tensor0(128i32), tensor0(y_scale)]
+                .into_iter()
+                .enumerate()
+        {
+            inputs.push(konst(&format!("q{i}"), t));
+        }
+        let op = EinSum::newq("mk,kn,n,,,,,,->anm".parse().unwrap(), i32::datum_type(), u8::datum_type());
+        let y = model.wire_node("proj", op, &inputs).unwrap();
+        model.select_output_outlets(&y).unwrap();
+        let input = Tensor::from_shape(&[3, 4], &[5u8; 12]).unwrap().into_tvalue();
+        let reference = model.clone().into_optimized().unwrap();
+        assert_eq!(crate::ops::accelerate(&mut model).unwrap().int8_convolutions, 1);
+        let want = reference.into_runnable().unwrap().run(tvec![input.clone()]).unwrap();
+        let got = model.into_runnable().unwrap().run(tvec![input]).unwrap();
+        let (got, want) = (got[0].try_as_plain_ram().unwrap(), want[0].try_as_plain_ram().unwrap());
+        // SAFETY: both outputs are u8 (possibly quantised).
+        let (got, want) = unsafe { (got.as_slice_unchecked::<u8>(), want.as_slice_unchecked::<u8>()) };
+        assert_eq!(got, want);
+        assert_eq!(got[0] as i32, 128 + exact);
     }
 
     #[test]
