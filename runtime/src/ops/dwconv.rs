@@ -161,6 +161,8 @@ mod kernel {
         rows_generic::<true>(src, wq, offs, ws, bias, dst, ow)
     }
 
+    /// AVX2: blocks of 16 columns (two 8-lane registers) by four rows, 8 accumulators (32
+    /// columns by four rows would need all 16 registers for accumulators alone).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn rows_avx2(
@@ -172,7 +174,7 @@ mod kernel {
         dst: &mut [f32],
         ow: usize,
     ) {
-        rows_generic::<true>(src, wq, offs, ws, bias, dst, ow)
+        rows_blocked::<true, 16>(src, wq, offs, ws, bias, dst, ow)
     }
 
     /// `B` output columns of `R` consecutive output rows from `at` on (rows `wq` apart), into
