@@ -1,7 +1,9 @@
 //! The inner loops of [`super::PackedQConv`]: the AVX-512 VNNI tiles (8 output channels x 32
-//! positions, `vpdpbusd` on words of four u8 inputs and four i8 weights), the aarch64 SDOT tiles
+//! positions, `vpdpbusd` on words of four u8 inputs and four i8 weights), the AVX2 tiles (the
+//! same sums by `vpmaddwd` on the words' bytes widened to 16 bits), the aarch64 SDOT tiles
 //! (8 output channels x 8 positions, `sdot` on words of four i8 inputs and four i8 weights) and
-//! the requantisation they share (16 lanes on AVX-512, bit for bit the scalar formula).
+//! the requantisation they share (16 lanes on AVX-512, 8 on AVX2, bit for bit the scalar
+//! formula).
 
 #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
 use super::qconv::{PX, ROWS};
