@@ -81,13 +81,14 @@ check() {
     "$host" compile --model "$work/nanotrack-model" --out "$work/nanotrack-plan"
     "$host" quantize --plan "$work/nanotrack-plan" --calib "$calib" --frames-per-seq 16 --method minmax \
         --budget 4 --min-macs 1000000 --min-out-channels 16 --out "$work/nanotrack-int8" >/dev/null
-    # The int8 plan is recorded with tract's integer products (PRL_ISA=avx512 leaves them to
-    # tract), as aarch64 runs them: there tract makes NanoTrack's layers channels-last, which the
-    # runtime's PackedQConv does not take, and the two round differently in the last bit.
+    # The int8 plan is recorded with tract's integer products (PRL_OPS=tract-int8), as aarch64
+    # runs them: there tract makes NanoTrack's layers channels-last, which the runtime's
+    # PackedQConv does not take, and the two round differently in the last bit. (PRL_ISA=avx512
+    # did this until PackedQConv got an AVX2 path, which serves CPUs without VNNI.)
     for p in prl-plan nanotrack-plan nanotrack-int8; do
-        local cap=native
-        [[ $p == *int8 ]] && cap=avx512
-        PRL_ISA=$cap "$host" bench --plan "$work/$p" --runs 1 --top 0 --sequence "$golden/seq_drift" \
+        local ops=all
+        [[ $p == *int8 ]] && ops=tract-int8
+        PRL_OPS=$ops "$host" bench --plan "$work/$p" --runs 1 --top 0 --sequence "$golden/seq_drift" \
             --save-tensors "$work/$p-rec" >/dev/null
     done
     local qemu=(qemu-aarch64 -L /usr/aarch64-linux-gnu -cpu "$QEMU_CPU")

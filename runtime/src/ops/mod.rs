@@ -54,6 +54,18 @@ pub fn own_operators() -> bool {
     *OWN.get_or_init(|| !std::env::var("PRL_OPS").is_ok_and(|v| v.trim().eq_ignore_ascii_case("tract")))
 }
 
+/// Whether the int8 convolutions and products are the runtime's own ([`PackedQConv`]): yes
+/// unless `PRL_OPS` is `tract` or `tract-int8` (the runtime's float operators, tract's integer
+/// products: how an x86 recording matches aarch64, where tract makes NanoTrack's layers
+/// channels-last and runs them itself, since the two requantise per-tensor scales differently
+/// in rare last bits).
+pub fn own_int8_operators() -> bool {
+    static OWN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *OWN.get_or_init(|| {
+        own_operators() && !std::env::var("PRL_OPS").is_ok_and(|v| v.trim().eq_ignore_ascii_case("tract-int8"))
+    })
+}
+
 /// How many nodes [`accelerate`] replaced.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct Accelerated {

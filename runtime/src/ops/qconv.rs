@@ -414,7 +414,7 @@ fn konst_values<T: Datum + Copy>(fact: &TypedFact, n: usize) -> TractResult<Opti
 /// stride 1 or 2, or the `EinSum` tract makes of a 1x1 convolution: HMG's patch embeddings), and
 /// the CPU has AVX-512 VNNI, AVX2 or the aarch64 dot product.
 pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedQConv>> {
-    if !has_words_path() {
+    if !has_words_path() || !super::own_int8_operators() {
         return Ok(None);
     }
     let facts = model.node_input_facts(node.id)?;
