@@ -497,12 +497,7 @@ fn conv_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<ConvShape> {
 /// [`ConvShape`]. (NanoTrack's pointwise layers come as `IHW,OI,O->OHW`, without the batch
 /// axis.)
 fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, bool)> {
-    let einsum = node.op_as::<EinSum>()?;
-    einsum.q_params?;
-    let expr = einsum.axes.to_string();
-    let (inputs, output) = expr.split_once("->")?;
-    let terms: Vec<Vec<char>> = inputs.split(',').map(|t| t.chars().collect()).collect();
-    let out: Vec<char> = output.chars().collect();
+    let (terms, out) = q_einsum_terms(node)?;
     let [x, w, b, ..] = terms.as_slice() else { return None };
     // NCHW, or CHW (a batch axis of 1 dropped, as in NanoTrack's graphs): `nihw,oi->nohw`.
     let batch = x.len() == 4;
@@ -530,6 +525,15 @@ fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape,
     (wi == ci).then_some((ConvShape { ci, h, w, co, kh: 1, kw: 1, pad: [0; 4], stride: 1 }, batch))
 }
 
+/// The axis letters of a quantised `EinSum`'s input terms and of its output.
+fn q_einsum_terms(node: &TypedNode) -> Option<(Vec<Vec<char>>, Vec<char>)> {
+    let einsum = node.op_as::<EinSum>()?;
+    einsum.q_params?;
+    let expr = einsum.axes.to_string();
+    let (inputs, output) = expr.split_once("->")?;
+    Some((inputs.split(',').map(|t| t.chars().collect()).collect(), output.chars().collect()))
+}
+
 /// The shape of a quantised `EinSum` that is a matrix product by constant weights, HMG's
 /// linear layers (`akm,kn->mn`, `mk,kn->anm`, whatever the letters: the input `[.., K, M]` or
 /// `[.., M, K]`, the weights `K x N` or `N x K`, the output `[.., M, N]` or `[.., N, M]`, a
@@ -542,12 +546,7 @@ fn matmul_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Pr
     if words_path() != Some(WordsPath::Avx2) {
         return None;
     }
-    let einsum = node.op_as::<EinSum>()?;
-    einsum.q_params?;
-    let expr = einsum.axes.to_string();
-    let (inputs, output) = expr.split_once("->")?;
-    let terms: Vec<Vec<char>> = inputs.split(',').map(|t| t.chars().collect()).collect();
-    let out: Vec<char> = output.chars().collect();
+    let (terms, out) = q_einsum_terms(node)?;
     let [x, w, b, ..] = terms.as_slice() else { return None };
     let (xr, or) = (x.len(), out.len());
     if !(2..=3).contains(&xr) || !(2..=3).contains(&or) || w.len() != 2 {
