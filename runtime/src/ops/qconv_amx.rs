@@ -79,9 +79,16 @@ impl AmxWeights {
     }
 
     /// Convolve one NCHW u8 image `src` into NCHW u8 `out`, requantising output channel `o`'s
-    /// sums with `offset[o]`, `scale[o]` and `y0` (see [`super::qconv`]). The caller checked
+    /// sums with `offset[o]`, `scale[o]` (exactly or not) and `y0` (see [`super::qconv`]). The caller checked
     /// [`available`].
-    pub(crate) fn run(&self, shape: &ConvShape, src: &[u8], x0: u8, requant: (&[i32], &[f32], u8), out: &mut [u8]) {
+    pub(crate) fn run(
+        &self,
+        shape: &ConvShape,
+        src: &[u8],
+        x0: u8,
+        requant: (&[i32], &[f32], bool, u8),
+        out: &mut [u8],
+    ) {
         let s = shape;
         let (hp, wp) = s.padded();
         let (oh, ow) = s.out();
@@ -125,8 +132,8 @@ impl AmxWeights {
                     requant_columns(
                         &acc,
                         &requant.0[o0..o0 + channels],
-                        &requant.1[o0..],
-                        requant.2,
+                        (&requant.1[o0..], requant.2),
+                        requant.3,
                         &mut rows[p0..],
                         wide,
                     );
@@ -150,7 +157,7 @@ impl AmxWeights {
 unsafe fn requant_columns(
     acc: &[i32; 4 * T * T],
     offset: &[i32],
-    scale: &[f32],
+    (scale, exact): (&[f32], bool),
     y0: u8,
     rows: &mut [u8],
     stride: usize,
@@ -164,7 +171,7 @@ unsafe fn requant_columns(
             // `POS_BLOCK` bytes at every channel's row (the caller's slice).
             unsafe {
                 let column = _mm512_i32gather_epi32::<4>(lanes, tile.as_ptr());
-                let bytes = super::qconv_kernel::requant16(column, offset, scale, y0);
+                let bytes = super::qconv_kernel::requant16(column, offset, scale, exact, y0);
                 _mm_storeu_si128(rows[o * stride + ph * T..][..T].as_mut_ptr().cast(), bytes);
             }
         }
@@ -172,7 +179,7 @@ unsafe fn requant_columns(
 }
 
 #[cfg(not(target_arch = "x86_64"))]
-unsafe fn requant_columns(_: &[i32; 4 * T * T], _: &[i32], _: &[f32], _: u8, _: &mut [u8], _: usize) {
+unsafe fn requant_columns(_: &[i32; 4 * T * T], _: &[i32], _: (&[f32], bool), _: u8, _: &mut [u8], _: usize) {
     unreachable!("AMX is only used on x86_64")
 }
 

@@ -7,27 +7,48 @@
 
 #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
 use super::qconv::{PX, ROWS};
+use tract_nnef::tract_core::tract_linalg::{mmm::RoundingPolicy, Scaler};
 
-/// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`: on AVX-512 where
-/// [`crate::isa`] allows it, else on AVX2.
+/// The scales [`requant_one`]'s exact rounding is vectorised for: from 2^-15, so that a sum
+/// too large for an f32 (2^24 and up) saturates either way, to below 1, so that tract's
+/// fixed-point product cannot overflow. A layer with one scale outside this range stays with
+/// tract.
+pub(super) const EXACT_SCALES: std::ops::Range<f32> = 1.0 / 32768.0..1.0;
+
+/// One requantised output: `sat_u8(round_half_even(sum · scale) + y0)`, with the product as
+/// tract takes it. `exact` (one scale for every output channel): the exact product, as tract's
+/// `Scaler` (fixed point, rounded half to even); else the f32 product rounded, as tract's
+/// per-channel `Scale`. The two differ where the f32 product lands on a half that the exact
+/// one misses.
+#[inline]
+pub(super) fn requant_one(sum: i32, scale: f32, exact: bool, y0: u8) -> u8 {
+    if exact {
+        (sum * Scaler::new(scale, RoundingPolicy::Even)).saturating_add(y0 as i32).clamp(0, 255) as u8
+    } else {
+        ((sum as f32 * scale).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8
+    }
+}
+
+/// `out[i] = requant_one(sums[i] + offset, scale, exact, y0)`: on AVX-512 where [`crate::isa`]
+/// allows it, else on AVX2.
 ///
 /// # Safety
 /// The CPU has AVX2 and FMA (every x86 CPU a [`super::PackedQConv`] is made on).
 #[cfg(target_arch = "x86_64")]
-pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
+pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
     if crate::isa().avx512 {
         // SAFETY: the CPU has AVX-512F.
-        unsafe { requantise_avx512(sums, offset, scale, y0, out) }
+        unsafe { requantise_avx512(sums, offset, scale, exact, y0, out) }
     } else {
         // SAFETY: the caller guarantees AVX2 and FMA.
-        unsafe { requantise_avx2(sums, offset, scale, y0, out) }
+        unsafe { requantise_avx2(sums, offset, scale, exact, y0, out) }
     }
 }
 
-/// [`requantise`] on 8 lanes (AVX2), bit for bit the scalar formula.
+/// [`requantise`] on 8 lanes (AVX2), bit for bit [`requant_one`].
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn requantise_avx2(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
+unsafe fn requantise_avx2(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
     use std::arch::x86_64::*;
     let (off, sc, y) = (_mm256_set1_epi32(offset), _mm256_set1_ps(scale), _mm256_set1_ps(y0 as f32));
     let mut chunks = sums.chunks_exact(8);
@@ -35,9 +56,13 @@ unsafe fn requantise_avx2(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &m
     for (s, o) in (&mut chunks).zip(&mut outs) {
         // SAFETY: 8 i32 in, 8 bytes out.
         unsafe {
-            let v = _mm256_loadu_si256(s.as_ptr().cast());
-            let f = _mm256_mul_ps(_mm256_cvtepi32_ps(_mm256_add_epi32(v, off)), sc);
-            let f = _mm256_add_ps(_mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f), y);
+            let x = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_loadu_si256(s.as_ptr().cast()), off));
+            let p = _mm256_mul_ps(x, sc);
+            let mut r = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(p);
+            if exact {
+                r = exact_avx2(x, sc, p, r);
+            }
+            let f = _mm256_add_ps(r, y);
             let f = _mm256_min_ps(_mm256_max_ps(f, _mm256_setzero_ps()), _mm256_set1_ps(255.0));
             let i = _mm256_cvttps_epi32(f);
             // Eight values in 0..=255: narrowing with unsigned saturation keeps them.
@@ -46,14 +71,41 @@ unsafe fn requantise_avx2(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &m
         }
     }
     for (o, &s) in outs.into_remainder().iter_mut().zip(chunks.remainder()) {
-        *o = (((s + offset) as f32 * scale).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8;
+        *o = requant_one(s + offset, scale, exact, y0);
     }
+}
+
+/// The exact product `x · scale` rounded half to even, from its f32 product `p` and that
+/// rounded, `r` (x an integer below 2^24 in magnitude): `p` is a half only where the exact
+/// product is that half or rounds onto it, and the product's error `x·scale − p` (exact by a
+/// fused multiply-add) says which side it lies on; elsewhere `r` is already right. Where `p`
+/// is `r ± ½` and the error has the same sign, the exact product is past the half: `r + 2(p −
+/// r)`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn exact_avx2(
+    x: std::arch::x86_64::__m256,
+    scale: std::arch::x86_64::__m256,
+    p: std::arch::x86_64::__m256,
+    r: std::arch::x86_64::__m256,
+) -> std::arch::x86_64::__m256 {
+    use std::arch::x86_64::*;
+    let d = _mm256_sub_ps(p, r);
+    let half = _mm256_cmp_ps::<_CMP_EQ_OQ>(_mm256_andnot_ps(_mm256_set1_ps(-0.0), d), _mm256_set1_ps(0.5));
+    // Halves are rare: most groups of eight have none.
+    if _mm256_movemask_ps(half) == 0 {
+        return r;
+    }
+    let error = _mm256_fmsub_ps(x, scale, p);
+    let past = _mm256_cmp_ps::<_CMP_GT_OQ>(_mm256_mul_ps(d, error), _mm256_setzero_ps());
+    _mm256_add_ps(r, _mm256_and_ps(_mm256_and_ps(half, past), _mm256_add_ps(d, d)))
 }
 
 /// [`requantise`] on 16 lanes (AVX-512).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn requantise_avx512(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
+unsafe fn requantise_avx512(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
     use std::arch::x86_64::*;
     let mut chunks = sums.chunks_exact(16);
     let mut outs = out.chunks_exact_mut(16);
@@ -61,25 +113,31 @@ unsafe fn requantise_avx512(sums: &[i32], offset: i32, scale: f32, y0: u8, out: 
         // SAFETY: 16 i32 in, 16 bytes out.
         unsafe {
             let v = _mm512_loadu_si512(s.as_ptr().cast());
-            _mm_storeu_si128(o.as_mut_ptr().cast(), requant16(v, offset, scale, y0));
+            _mm_storeu_si128(o.as_mut_ptr().cast(), requant16(v, offset, scale, exact, y0));
         }
     }
     for (o, &s) in outs.into_remainder().iter_mut().zip(chunks.remainder()) {
-        *o = (((s + offset) as f32 * scale).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8;
+        *o = requant_one(s + offset, scale, exact, y0);
     }
 }
 
-/// [`requantise`] on 16 lanes, bit for bit the same as the scalar formula.
+/// [`requantise`] on 16 lanes, bit for bit [`requant_one`].
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-pub(super) fn requant16(v: std::arch::x86_64::__m512i, offset: i32, scale: f32, y0: u8) -> std::arch::x86_64::__m128i {
+pub(super) fn requant16(
+    v: std::arch::x86_64::__m512i,
+    offset: i32,
+    scale: f32,
+    exact: bool,
+    y0: u8,
+) -> std::arch::x86_64::__m128i {
     use std::arch::x86_64::*;
-    _mm512_cvtepi32_epi8(requant_lanes(v, _mm512_set1_epi32(offset), _mm512_set1_ps(scale), y0))
+    _mm512_cvtepi32_epi8(requant_lanes(v, _mm512_set1_epi32(offset), _mm512_set1_ps(scale), exact, y0))
 }
 
 /// The requantisation of 16 sums, each lane with its own offset and scale, as i32 values in
-/// `0..=255` (what every AVX-512 path narrows to bytes): `sat_u8(round_half_even((v + offset) ·
-/// scale) + y0)`, the scalar formula's operations in its order.
+/// `0..=255` (what every AVX-512 path narrows to bytes): [`requant_one`] of `v + offset`, the
+/// scalar formula's operations in its order (`exact`: as [`exact_avx2`], on 16 lanes).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
@@ -87,27 +145,43 @@ pub(super) fn requant_lanes(
     v: std::arch::x86_64::__m512i,
     offset: std::arch::x86_64::__m512i,
     scale: std::arch::x86_64::__m512,
+    exact: bool,
     y0: u8,
 ) -> std::arch::x86_64::__m512i {
     use std::arch::x86_64::*;
-    let f = _mm512_mul_ps(_mm512_cvtepi32_ps(_mm512_add_epi32(v, offset)), scale);
-    let f = _mm512_add_ps(
-        _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(f),
-        _mm512_set1_ps(y0 as f32),
-    );
+    let x = _mm512_cvtepi32_ps(_mm512_add_epi32(v, offset));
+    let p = _mm512_mul_ps(x, scale);
+    let mut r = _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(p);
+    if exact {
+        let d = _mm512_sub_ps(p, r);
+        let half = _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(_mm512_abs_ps(d), _mm512_set1_ps(0.5));
+        // Halves are rare: most groups of sixteen have none.
+        if half != 0 {
+            let error = _mm512_fmsub_ps(x, scale, p);
+            let past = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(_mm512_mul_ps(d, error), _mm512_setzero_ps());
+            r = _mm512_mask_add_ps(r, half & past, r, _mm512_add_ps(d, d));
+        }
+    }
+    let f = _mm512_add_ps(r, _mm512_set1_ps(y0 as f32));
     let f = _mm512_min_ps(_mm512_max_ps(f, _mm512_setzero_ps()), _mm512_set1_ps(255.0));
     _mm512_cvttps_epi32(f)
 }
 
-/// `out[i] = sat_u8(round_half_even((sums[i] + offset) · scale) + y0)`, the portable form
-/// (vectorised by the compiler; `frintn` on NEON).
+/// `out[i] = requant_one(sums[i] + offset, scale, exact, y0)`, the portable form (the f32
+/// product vectorised by the compiler, `frintn` on NEON; the exact one in tract's fixed point).
 ///
 /// # Safety
-/// None needed; `unsafe` for the same signature as the AVX-512 form.
+/// None needed; `unsafe` for the same signature as the x86 form.
 #[cfg(not(target_arch = "x86_64"))]
-pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, y0: u8, out: &mut [u8]) {
-    for (o, &s) in out.iter_mut().zip(sums) {
-        *o = (((s + offset) as f32 * scale).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8;
+pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
+    if exact {
+        for (o, &s) in out.iter_mut().zip(sums) {
+            *o = requant_one(s + offset, scale, true, y0);
+        }
+    } else {
+        for (o, &s) in out.iter_mut().zip(sums) {
+            *o = requant_one(s + offset, scale, false, y0);
+        }
     }
 }
 

@@ -11,7 +11,9 @@
 use super::conv_kernel::Layout;
 use super::conv_lanes::{for_each_item, outputs, Lanes};
 #[cfg(target_arch = "x86_64")]
+#[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::requant_lanes;
+use super::qconv_kernel::requant_one;
 use super::SyncPtr;
 
 /// Output channels per register.
@@ -27,6 +29,8 @@ pub(crate) struct QLanePack {
     /// Per channel, padded to whole blocks: `bias − x0·Σw` and the scale.
     offset: Vec<i32>,
     scale: Vec<f32>,
+    /// One scale for every channel: requantised exactly ([`super::qconv_kernel::requant_one`]).
+    exact: bool,
 }
 
 impl QLanePack {
@@ -36,12 +40,19 @@ impl QLanePack {
     }
 
     /// Pack `words` (`[co][groups]`, four i8 weights each) for `v` registers.
-    pub(crate) fn new(words: &[i32], groups: usize, co: usize, v: usize, offset: &[i32], scale: &[f32]) -> QLanePack {
+    pub(crate) fn new(
+        words: &[i32],
+        groups: usize,
+        co: usize,
+        v: usize,
+        offset: &[i32],
+        (scale, exact): (&[f32], bool),
+    ) -> QLanePack {
         let lanes = Lanes::pack(co, groups, v, |o, g| words[o * groups + g]);
         let padded = co.div_ceil(lanes.channels()) * lanes.channels();
         let offset = (0..padded).map(|o| if o < co { offset[o] } else { 0 }).collect();
         let scale = (0..padded).map(|o| if o < co { scale[o] } else { 0.0 }).collect();
-        QLanePack { lanes, offset, scale }
+        QLanePack { lanes, offset, scale, exact }
     }
 
     /// Channels per tile.
@@ -93,13 +104,22 @@ impl QLanePack {
                 // channels `b·oc .. b·oc + rows < co` at positions `p0 .. p0 + n <= plane` are
                 // within `out` (asserted) and this item's alone.
                 unsafe {
-                    requant_transposed(&sums[..n * oc], oc, rows, offset, scale, y0, dst.at(b * oc * plane + p0), plane)
+                    requant_transposed(
+                        &sums[..n * oc],
+                        oc,
+                        rows,
+                        offset,
+                        (scale, self.exact),
+                        y0,
+                        dst.at(b * oc * plane + p0),
+                        plane,
+                    )
                 };
                 return;
             }
             let mut bytes = vec![0u8; oc];
             for (s, at) in outputs(g, &sums, oc, px, first) {
-                requantise_lanes(vector, s, offset, scale, y0, &mut bytes);
+                requantise_lanes(vector, s, offset, (scale, self.exact), y0, &mut bytes);
                 for (r, &v) in bytes[..rows].iter().enumerate() {
                     // SAFETY: `b·oc + r < co` and `at < plane`, within `out` (asserted); each
                     // (channel, position) belongs to one item only.
@@ -110,23 +130,29 @@ impl QLanePack {
     }
 }
 
-/// `out[r] = sat_u8(round_half_even((sums[r] + offset[r]) · scale[r]) + y0)`, lane by lane:
-/// the scalar formula of [`super::qconv_kernel::requantise`] with one channel per lane;
-/// `vector`: on AVX-512 (the CPU must have it; x86_64 only).
+/// `out[r] = requant_one(sums[r] + offset[r], scale[r], exact, y0)`, lane by lane (one channel
+/// per lane); `vector`: on AVX-512 (the CPU must have it; x86_64 only).
 #[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables))]
-fn requantise_lanes(vector: bool, sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, out: &mut [u8]) {
+fn requantise_lanes(
+    vector: bool,
+    sums: &[i32],
+    offset: &[i32],
+    (scale, exact): (&[f32], bool),
+    y0: u8,
+    out: &mut [u8],
+) {
     #[cfg(target_arch = "x86_64")]
     if vector {
         for (((s, o), c), out) in
             sums.chunks_exact(L).zip(offset.chunks_exact(L)).zip(scale.chunks_exact(L)).zip(out.chunks_exact_mut(L))
         {
             // SAFETY: the CPU has AVX-512F; 16 values in each slice.
-            unsafe { requant16_lanes(s, o, c, y0, out) };
+            unsafe { requant16_lanes(s, o, c, exact, y0, out) };
         }
         return;
     }
     for (((&s, &o), &c), out) in sums.iter().zip(offset).zip(scale).zip(out) {
-        *out = (((s + o) as f32 * c).round_ties_even() + y0 as f32).clamp(0.0, 255.0) as u8;
+        *out = requant_one(s + o, c, exact, y0);
     }
 }
 
@@ -134,13 +160,13 @@ fn requantise_lanes(vector: bool, sums: &[i32], offset: &[i32], scale: &[f32], y
 /// scales).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn requant16_lanes(sums: &[i32], offset: &[i32], scale: &[f32], y0: u8, out: &mut [u8]) {
+unsafe fn requant16_lanes(sums: &[i32], offset: &[i32], scale: &[f32], exact: bool, y0: u8, out: &mut [u8]) {
     use std::arch::x86_64::*;
     assert!(sums.len() == L && offset.len() == L && scale.len() == L && out.len() == L);
     // SAFETY: 16 values in and out (asserted).
     unsafe {
         let (v, o) = (_mm512_loadu_si512(sums.as_ptr().cast()), _mm512_loadu_si512(offset.as_ptr().cast()));
-        let q = requant_lanes(v, o, _mm512_loadu_ps(scale.as_ptr()), y0);
+        let q = requant_lanes(v, o, _mm512_loadu_ps(scale.as_ptr()), exact, y0);
         _mm_storeu_si128(out.as_mut_ptr().cast(), _mm512_cvtepi32_epi8(q));
     }
 }
@@ -161,7 +187,7 @@ unsafe fn requant_transposed(
     oc: usize,
     rows: usize,
     offset: &[i32],
-    scale: &[f32],
+    (scale, exact): (&[f32], bool),
     y0: u8,
     out: *mut u8,
     plane: usize,
@@ -182,7 +208,7 @@ unsafe fn requant_transposed(
             for (c, r) in r.iter().enumerate().take((rows - L * j).min(L)) {
                 let ch = L * j + c;
                 let (o, c) = (_mm512_set1_epi32(offset[ch]), _mm512_set1_ps(scale[ch]));
-                let q = requant_lanes(_mm512_castps_si512(*r), o, c, y0);
+                let q = requant_lanes(_mm512_castps_si512(*r), o, c, exact, y0);
                 // SAFETY: channel ch < rows, positions k0 .. k0 + m (the caller's promise).
                 unsafe { _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + k0).cast(), keep, q) };
             }
@@ -334,13 +360,14 @@ mod tests {
         let g = Layout::dense(cg, h, w, k);
         let taps = &g.taps;
         let words: Vec<u32> = (0..cg * h * w + 64).map(|i| (i as u32).wrapping_mul(2_654_435_761)).collect();
-        for co in [40, 96] {
+        // Per-channel scales (the f32 product), and one scale for all (the exact product).
+        for (co, exact) in [(40, false), (96, false), (40, true), (96, true)] {
             let groups = taps.len();
             let wq: Vec<i32> = (0..co * groups).map(|i| (i as i32).wrapping_mul(-1_640_531_535)).collect();
             let offset: Vec<i32> = (0..co as i32).map(|o| 1000 * o - 30_000).collect();
-            let scale: Vec<f32> = (0..co).map(|o| 1.0 / (2000.0 + 37.0 * o as f32)).collect();
+            let scale: Vec<f32> = (0..co).map(|o| 1.0 / (2000.0 + if exact { 0.0 } else { 37.0 * o as f32 })).collect();
             let v = QLanePack::registers_for(co).unwrap();
-            let pack = QLanePack::new(&wq, groups, co, v, &offset, &scale);
+            let pack = QLanePack::new(&wq, groups, co, v, &offset, (&scale, exact));
             let mut got = vec![0u8; co * g.oh * g.ow];
             pack.run(&g, &words, 9, &mut got);
             let mut want = vec![0u8; co * g.oh * g.ow];
@@ -351,7 +378,7 @@ mod tests {
                         let p = y * g.wp + x;
                         let s: i32 =
                             taps.iter().enumerate().map(|(gi, &t)| dot4(words[p + t], wq[o * groups + gi])).sum();
-                        let q = (((s + offset[o]) as f32 * scale[o]).round_ties_even() + 9.0).clamp(0.0, 255.0) as u8;
+                        let q = requant_one(s + offset[o], scale[o], exact, 9);
                         want[(o * g.oh + y) * g.ow + x] = q;
                         spread.insert(q);
                     }
@@ -359,7 +386,7 @@ mod tests {
             }
             assert!(spread.len() > 100, "the test's outputs should spread over the bytes: {}", spread.len());
             if let Some(i) = (0..want.len()).find(|&i| got[i] != want[i]) {
-                panic!("{co} channels: output {i} is {} instead of {}", got[i], want[i]);
+                panic!("{co} channels, exact {exact}: output {i} is {} instead of {}", got[i], want[i]);
             }
         }
     }
