@@ -157,10 +157,69 @@ unsafe fn rows_neon<const R: usize, const B: usize>((g, padded, kernel, bias, ou
     }
 }
 
+/// AVX2: strips of 16 columns (two registers), 4 output rows at a time, as on AVX-512: 8
+/// accumulators, and each input vector loaded serves up to 4 kernel rows (the generic strips
+/// loaded one vector for every multiply-add: `s1` ran at 37 GFLOP/s on an AMD EPYC).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn strips_avx2_fma(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
-    strips::<true>(g, padded, kernel, bias, out)
+    const R: usize = 4;
+    walk(g, LANES, R, |rows, y, x0, cols| {
+        let a = (g, padded, kernel, bias, &mut *out, y, x0, cols);
+        // SAFETY: the features are enabled here; the loads stay in `padded` (rows padded to
+        // whole blocks of 16), the stores in `out` (`cols` values).
+        unsafe {
+            match (rows, cols.div_ceil(8)) {
+                (R, 1) => rows_avx2::<R, 1>(a),
+                (R, _) => rows_avx2::<R, 2>(a),
+                (_, 1) => rows_avx2::<1, 1>(a),
+                _ => rows_avx2::<1, 2>(a),
+            }
+        }
+    });
+}
+
+/// Output rows `y..y+R`, columns `x0..x0+cols` (`B` registers of 8), as [`rows_avx512`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn rows_avx2<const R: usize, const B: usize>((g, padded, kernel, bias, out, y, x0, cols): Block) {
+    use std::arch::x86_64::*;
+    let (wp, ow) = (g.padded_w(), g.out_w());
+    assert!((y + R + g.kh - 1) * wp <= padded.len() && x0 + 8 * B + g.kw - 1 <= wp && kernel.len() == g.kh * g.kw);
+    assert!(cols <= 8 * B && (y + R - 1) * ow + x0 + cols <= out.len());
+    let mut acc = [[_mm256_set1_ps(bias); B]; R];
+    for r in 0..g.kh + R - 1 {
+        // SAFETY: row `y + r` lies in `padded` (asserted above).
+        let row = unsafe { padded.as_ptr().add((y + r) * wp + x0) };
+        for j in 0..g.kw {
+            // SAFETY: within the row (asserted above).
+            let v: [__m256; B] = std::array::from_fn(|b| unsafe { _mm256_loadu_ps(row.add(j + 8 * b)) });
+            for (q, acc) in acc.iter_mut().enumerate() {
+                if r >= q && r - q < g.kh {
+                    // SAFETY: row r − q < kh and column j < kw of the kernel (asserted length).
+                    let k = _mm256_broadcast_ss(unsafe { kernel.get_unchecked((r - q) * g.kw + j) });
+                    for (a, v) in acc.iter_mut().zip(v) {
+                        *a = _mm256_fmadd_ps(k, v, *a);
+                    }
+                }
+            }
+        }
+    }
+    for (q, acc) in acc.iter().enumerate() {
+        let dst = &mut out[(y + q) * ow + x0..(y + q) * ow + x0 + cols];
+        for (b, a) in acc.iter().enumerate() {
+            let n = cols.saturating_sub(b * 8).min(8);
+            if n == 8 {
+                // SAFETY: 8 floats from `8·b` lie in `dst`.
+                unsafe { _mm256_storeu_ps(dst.as_mut_ptr().add(8 * b), *a) };
+                continue;
+            }
+            let mut lanes = [0f32; 8];
+            // SAFETY: eight floats into a local array.
+            unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), *a) };
+            dst[8 * b..8 * b + n].copy_from_slice(&lanes[..n]);
+        }
+    }
 }
 
 /// AVX-512: strips of up to 3 registers of columns, 4 output rows at a time, so that each
@@ -315,6 +374,9 @@ mod tests {
                 let mut fma = vec![f32::NAN; out.len()];
                 // SAFETY: the CPU has AVX2 and FMA.
                 unsafe { strips_avx2_fma(g, &scratch, &kernel, 0.25, &mut fma) };
+                let mut fused = vec![f32::NAN; out.len()];
+                strips::<true>(g, &scratch, &kernel, 0.25, &mut fused);
+                assert!(fma == fused, "{h}x{w} by {kh}x{kw}: AVX2 differs from the portable fused loop");
                 paths.push(("avx2", fma));
             }
             #[cfg(target_arch = "aarch64")]
