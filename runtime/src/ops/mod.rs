@@ -336,6 +336,12 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         "PackedQConv" if info.contains("on AMX") => "amx".to_string(),
         "PackedQConv" if info.contains("VNNI") => "vnni".to_string(),
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
+        // Compiled for AVX2 on every x86 kernel of the table but the portable one.
+        "ChannelMaxPool"
+            if cfg!(target_arch = "x86_64") && crate::isa::f32_kernel() != crate::isa::F32Kernel::Portable =>
+        {
+            "avx2 (vectorised)".to_string()
+        }
         "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" => "portable (vectorised)".to_string(),
         _ => info
             .split(|c: char| !(c.is_alphanumeric() || c == '_'))
