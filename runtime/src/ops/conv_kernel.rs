@@ -140,9 +140,9 @@ fn scatter_tiles<const PX: usize>(l: &Layout, sums: &[f32], bias: &[f32; ROWS], 
 const AVX2_PX: usize = 24;
 
 /// Taps per pass over the tiles on AVX2 (16 KB of weights, half an L1): on an AMD EPYC (Zen 2),
-/// PRL-Track's backbone layer 3 29.4 -> 20.7 ms, layer 4 30.4 -> 26.9, the whole search graph's
-/// convolutions 167 -> 152 ms; 128 taps made layers 1 and 2 6-9% slower, 512 leaves them as
-/// they were.
+/// PRL-Track's backbone layer 3 29.4 -> 20.7 ms, layer 4 30.4 -> 26.9, its search graph's eight
+/// largest convolutions 167 -> 152 ms; 128 taps made layers 1 and 2 6-9% slower, 512 leaves
+/// them as they were.
 #[cfg(target_arch = "x86_64")]
 const AVX2_CHUNK: usize = 512;
 
@@ -216,8 +216,9 @@ unsafe fn tile_avx2(base: *const f32, taps: &[usize], w: *const f32, init: Avx2T
 /// register of 8 positions stored straight into its output row where they all lie in one row's
 /// columns (the rest value by value: a copy per row run through a tile buffer cost the stem
 /// a fifth of its time). Past [`AVX2_CHUNK`] taps, the taps are taken that many at a time over
-/// every tile, as on AVX-512, the partial sums kept in a buffer: a chunk's weights stay in L1 and the
-/// input rows one tile reads are still there for the next (the same sums in the same order).
+/// every tile, as on AVX-512, the partial sums kept in a buffer: a pass's weights stay in L1
+/// and the input rows one tile reads are still there for the next (the same sums in the same
+/// order).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn positions_avx2_fma(
