@@ -174,6 +174,7 @@ pub(super) fn requant_lanes(
 /// None needed; `unsafe` for the same signature as the x86 form.
 #[cfg(not(target_arch = "x86_64"))]
 pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
+    // One loop per mode, so that the f32 one stays free of the fixed-point branch and vectorises.
     if exact {
         for (o, &s) in out.iter_mut().zip(sums) {
             *o = requant_one(s + offset, scale, true, y0);

@@ -11,7 +11,6 @@
 use super::conv_kernel::Layout;
 use super::conv_lanes::{for_each_item, outputs, Lanes};
 #[cfg(target_arch = "x86_64")]
-#[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::requant_lanes;
 use super::qconv_kernel::requant_one;
 use super::SyncPtr;
