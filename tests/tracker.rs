@@ -123,7 +123,9 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
     let mut xcorr = named("DepthwiseXCorr");
     xcorr.sort();
     assert_eq!(xcorr, ["s1_conv", "s2_conv", "s3_conv", "s4_conv", "s5_conv"]);
-    let convs = named("PackedConv");
+    // (Layers 3 and 4 are `WinogradConv` where `PRL_WINOGRAD` asks for it.)
+    let mut convs = named("PackedConv");
+    convs.extend(named("WinogradConv"));
     for layer in ["layer1", "layer2", "layer3", "layer4"] {
         assert!(convs.iter().any(|n| n.contains(layer)), "{layer} in {convs:?}");
     }

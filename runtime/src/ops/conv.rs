@@ -559,9 +559,13 @@ pub(crate) fn const_conv<'a>(model: &'a TypedModel, node: &'a TypedNode) -> Trac
     Ok(Some(ConstConv { conv, input, pad, stride, kernel, weight, bias }))
 }
 
-/// The [`PackedConv`] for `node` of `model` if it is a [`ConstConv`] with one group, NCHW, and a
-/// kernel larger than 1x1.
-pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedConv>> {
+/// A convolution's shape, OIHW weights and bias.
+pub(crate) type PlainConv<'a> = (ConvShape, &'a [f32], &'a [f32]);
+
+/// The shape, OIHW weights and bias of `node` of `model` if it is a [`ConstConv`] with one
+/// group, NCHW, and a kernel larger than 1x1: what [`PackedConv`] and
+/// [`super::winograd::WinogradConv`] take.
+pub(crate) fn plain_conv<'a>(model: &'a TypedModel, node: &'a TypedNode) -> TractResult<Option<PlainConv<'a>>> {
     let Some(c) = const_conv(model, node)? else { return Ok(None) };
     let ps = &c.conv.pool_spec;
     let (kh, kw) = c.kernel;
@@ -570,7 +574,13 @@ pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option
         return Ok(None);
     }
     let shape = ConvShape { ci, h, w, co: ps.output_channels, kh, kw, pad: c.pad, stride: c.stride };
-    Ok(Some(PackedConv::new(shape, c.weight, c.bias)?))
+    Ok(Some((shape, c.weight, c.bias)))
+}
+
+/// The [`PackedConv`] for `node` of `model` if it is a [`plain_conv`].
+pub(crate) fn packed(model: &TypedModel, node: &TypedNode) -> TractResult<Option<PackedConv>> {
+    let Some((shape, weight, bias)) = plain_conv(model, node)? else { return Ok(None) };
+    Ok(Some(PackedConv::new(shape, weight, bias)?))
 }
 
 /// A direct f64 sum of a convolution of `groups` groups (OIHW weights, `[co, ci / groups, kh,

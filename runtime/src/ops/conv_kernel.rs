@@ -20,6 +20,19 @@ const CHUNK: usize = 128;
 /// Positions per tile of the widest kernel (two AVX-512 registers).
 pub(crate) const MAX_PX: usize = 32;
 
+/// Positions per tile of the kernel [`channel_block`] runs on this machine: a row of positions
+/// that is a multiple of it fills every tile.
+pub(crate) fn tile_positions() -> usize {
+    match crate::isa::f32_kernel() {
+        F32Kernel::Avx512 => MAX_PX,
+        #[cfg(target_arch = "x86_64")]
+        F32Kernel::Avx2Fma => AVX2_PX,
+        #[cfg(target_arch = "aarch64")]
+        F32Kernel::Neon => NEON_PX,
+        _ => 8,
+    }
+}
+
 /// Where the taps and outputs of one convolution lie.
 #[derive(Debug, Clone)]
 pub(crate) struct Layout {
@@ -209,6 +222,51 @@ unsafe fn tile_avx2(base: *const f32, taps: &[usize], w: *const f32, init: Avx2T
         );
     }
     [[a0, a1, a2], [a3, a4, a5], [a6, a7, a8], [a9, a10, a11]]
+}
+
+/// Positions per run of [`packed_products_avx2`]'s panels.
+#[cfg(target_arch = "x86_64")]
+pub(crate) const PACKED_PX: usize = AVX2_PX;
+
+/// A matrix product on AVX2 for one block of `ROWS` output rows, the other operand packed in
+/// runs of 24 columns: `out[r·ld + 24k + q] = Σ_t weights[t·ROWS + r]·panel[k·n + taps[t] + q]`
+/// for every run `k < runs`, where `n = 24·taps.len()` (runs of `[tap][24]`, so that each tile
+/// reads its taps one after the other) and `taps[t] = 24t`. Each run is one [`tile_avx2`] per
+/// half of the block, stored whole.
+///
+/// # Safety
+/// The CPU has AVX2 and FMA; `taps` is `24t` for `t < taps.len()` (not empty); `panel` holds
+/// `runs·24·taps.len()` values, `weights` `ROWS·taps.len()`, `out` `ROWS` rows of `ld >= 24·runs`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+pub(crate) unsafe fn packed_products_avx2(
+    panel: &[f32],
+    taps: &[usize],
+    runs: usize,
+    weights: &[f32],
+    out: &mut [f32],
+    ld: usize,
+) {
+    use std::arch::x86_64::*;
+    const HALF: usize = ROWS / 2;
+    let n = AVX2_PX * taps.len();
+    debug_assert!(panel.len() >= runs * n && weights.len() >= ROWS * taps.len() && out.len() >= ROWS * ld);
+    let zero = [[_mm256_setzero_ps(); 3]; 4];
+    for k in 0..runs {
+        for half in 0..ROWS / HALF {
+            // SAFETY: run k's taps lie within `panel` and the weights within `weights` (the
+            // caller's promises); rows half·4 .. + 4 of `out` hold 24 values from 24k.
+            unsafe {
+                let a = tile_avx2(panel.as_ptr().add(k * n), taps, weights.as_ptr().add(half * HALF), zero);
+                for (r, a) in a.iter().enumerate() {
+                    let row = out.as_mut_ptr().add((half * HALF + r) * ld + k * AVX2_PX);
+                    for (v, &a) in a.iter().enumerate() {
+                        _mm256_storeu_ps(row.add(8 * v), a);
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// AVX2 tiles of 24 positions, taken as two halves of four output channels ([`tile_avx2`]).

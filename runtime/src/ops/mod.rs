@@ -27,6 +27,7 @@ mod qconv_kernel;
 mod qconv_lanes;
 mod quant;
 mod se;
+mod winograd;
 mod xcorr;
 mod xcorr_kernel;
 
@@ -42,6 +43,7 @@ pub use pool::ChannelMaxPool;
 pub use qconv::PackedQConv;
 pub use quant::QuantizeU8;
 pub use se::SqueezeExcite;
+pub use winograd::WinogradConv;
 pub use xcorr::DepthwiseXCorr;
 
 use tract_nnef::internal::*;
@@ -70,7 +72,7 @@ pub fn own_int8_operators() -> bool {
 pub struct Accelerated {
     /// Depthwise correlations made [`DepthwiseXCorr`].
     pub correlations: usize,
-    /// Convolutions made [`PackedConv`].
+    /// Convolutions made [`PackedConv`] (or [`WinogradConv`] for 3x3 stride-1 ones).
     pub convolutions: usize,
     /// Depthwise convolutions with constant weights made [`DepthwiseConv`] (or
     /// [`DepthwiseConvHwc`] on channels-last data).
@@ -113,7 +115,17 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         let mut chain = vec![id];
         // Convolutions hold their weights and bias, and take in the activation after them:
         // they read only the data input.
-        let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = conv::packed(model, node)? {
+        let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = winograd::winograd(model, node)? {
+            done.convolutions += 1;
+            let op = match act::tail(model, node, None)? {
+                Some(t) => {
+                    chain = t.chain.clone();
+                    op.fused(&t)?
+                }
+                None => op,
+            };
+            (Box::new(op), tvec![node.inputs[0]])
+        } else if let Some(op) = conv::packed(model, node)? {
             done.convolutions += 1;
             let op = match act::tail(model, node, None)? {
                 Some(t) => {
@@ -330,6 +342,11 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         "PackedConv" | "DepthwiseConv" | "DepthwiseConvHwc" | "DepthwiseXCorr" | "ConstMatMul" | "PointwiseConv"
         | "AttnScores" | "AttnMix" | "RowSoftmax" | "QuantizeU8" | "SqueezeExcite" => {
             crate::isa::f32_kernel().name().to_string()
+        }
+        // The form from the operator's info ("F(2x2, 3x3), ...").
+        "WinogradConv" => {
+            let form = info.split("), ").next().unwrap_or("").replace(' ', "");
+            format!("{} {form})", crate::isa::f32_kernel().name())
         }
         // The operator's info says which (AMX serves only kernels larger than 1x1).
         "PackedQConv" if info.contains("on AMX") => "amx".to_string(),

@@ -1,0 +1,624 @@
+//! 3x3 and 5x5 stride-1 float convolutions as Winograd's F(2x2, 3x3) and F(2x2, 5x5)
+//! ([`WinogradConv`]): each 2x2 block of outputs from an `α x α` block of inputs (`α = r + 1`)
+//! with `α²` multiplications per input channel where the direct form takes `4r²`: 0.44 of the
+//! direct convolution's multiply-adds for 3x3 kernels, 0.36 for 5x5.
+//!
+//! Lavin and Gray's form ("Fast Algorithms for Convolutional Neural Networks", 2016): the
+//! outputs of a tile are `Aᵀ [Σ_c (G g Gᵀ) ⊙ (Bᵀ d B)] A` for matrices made from `α − 1`
+//! interpolation points and infinity (Toom-Cook): for 3x3 kernels the paper's (points 0, ±1);
+//! for 5x5 the points 0, ±1, 1/2, −2. The weights' transform `U = G g Gᵀ` is made once, when
+//! the plan is loaded (in f64, rounded once). For each frame:
+//!
+//! 1. the input transform `V = Bᵀ d B` of every channel's tiles (overlapping by `α − 2`), laid
+//!    out `[ξ][channel][tile]` for the `α²` positions `ξ` of a tile (on AVX2 packed in runs of
+//!    24 tiles, `[ξ][run][channel][24]`, so that each tile of a product reads its taps one
+//!    after the other);
+//! 2. `α²` matrix products `M_ξ = U_ξ · V_ξ` (`[co x ci] · [ci x tiles]`), by the direct
+//!    convolution's kernel: on AVX2 its assembly tile over the packed runs
+//!    ([`super::conv_kernel::packed_products_avx2`]), elsewhere
+//!    [`super::conv_kernel::channel_block`] itself (a product is a convolution whose taps are
+//!    the channels, one row of `tiles` positions), so every instruction set the direct form has
+//!    (AVX-512, AVX2 + FMA, NEON, portable) serves;
+//! 3. the output transform `Aᵀ M A`, the bias and the activation, written into the output.
+//!
+//! **Off unless asked for** (`PRL_WINOGRAD`, [`kernel_sides`]). The sums differ from the direct
+//! form's in their rounding. F(2x2, 3x3)'s transforms add and subtract at most four values
+//! and halve, so its error stays at the level of a reordered direct sum (3e-7 of the output's
+//! range on random layers, against 1.4e-7 for the direct f32 sum); F(2x2, 5x5)'s coefficients
+//! (up to 5/2, and 1/15 in `G`) give 1.5e-6; F(4x4, 3x3), 5e-6, is not used. On PRL-Track's
+//! reference checkpoint the network's stages come out no further from the official PyTorch
+//! ones with them than without, but the tracker's boxes on the official traces move from
+//! within 1e-4 px of the official ones to within 2.5e-4 px (docs/performance.md): a precision
+//! the user chooses, not a default.
+
+use std::sync::Arc;
+
+use tract_nnef::internal::*;
+
+use super::act::{Activation, Tail};
+use super::conv::ConvShape;
+use super::conv_kernel::{channel_block, tile_positions, Layout, MAX_PX, ROWS};
+#[cfg(target_arch = "x86_64")]
+use super::conv_kernel::{packed_products_avx2, PACKED_PX};
+use super::{output_tensor_written, par_chunks, same_bits, with_padded};
+
+/// One F(2x2, r x r) algorithm: its kernel side `r`, tile side `alpha = r + 1` and matrices
+/// (row-major): `Bᵀ` (`α x α`), `G` (`α x r`), `Aᵀ` (`2 x α`).
+#[derive(Debug)]
+struct Form {
+    r: usize,
+    alpha: usize,
+    bt: &'static [f32],
+    g: &'static [f64],
+    at: &'static [f32],
+}
+
+/// F(2x2, 3x3), Lavin and Gray's matrices (points 0, 1, −1 and infinity).
+const F2_3: Form = Form {
+    r: 3,
+    alpha: 4,
+    #[rustfmt::skip]
+    bt: &[
+        1.0, 0.0, -1.0, 0.0,
+        0.0, 1.0, 1.0, 0.0,
+        0.0, -1.0, 1.0, 0.0,
+        0.0, 1.0, 0.0, -1.0,
+    ],
+    #[rustfmt::skip]
+    g: &[
+        1.0, 0.0, 0.0,
+        0.5, 0.5, 0.5,
+        0.5, -0.5, 0.5,
+        0.0, 0.0, 1.0,
+    ],
+    #[rustfmt::skip]
+    at: &[
+        1.0, 1.0, 1.0, 0.0,
+        0.0, 1.0, -1.0, -1.0,
+    ],
+};
+
+/// F(2x2, 5x5) from the points 0, 1, −1, 1/2, −2 and infinity: `Bᵀ`'s row `i` holds the
+/// coefficients (lowest power first) of `Π_k (x − p_k) / (x − p_i)`, the last `Π_k (x − p_k)`;
+/// `G[i][j] = p_iʲ / Π_{k≠i} (p_i − p_k)`; `Aᵀ[l][i] = p_iˡ` (infinity: `[0, 1]`). Of the
+/// point sets tried in f32 on random layers (0, ±1 with ±2, ±1/2, 2 and −1/2, 1/2 and −2) this
+/// one and its mirror gave the smallest error (1.5e-6 of the range, ±2 and ±1/2 4e-6).
+const F2_5: Form = Form {
+    r: 5,
+    alpha: 6,
+    #[rustfmt::skip]
+    bt: &[
+        1.0, -1.5, -2.0, 1.5, 1.0, 0.0,
+        0.0, -1.0, 0.5, 2.5, 1.0, 0.0,
+        0.0, 1.0, -2.5, 0.5, 1.0, 0.0,
+        0.0, -2.0, -1.0, 2.0, 1.0, 0.0,
+        0.0, 0.5, -1.0, -0.5, 1.0, 0.0,
+        0.0, 1.0, -1.5, -2.0, 1.5, 1.0,
+    ],
+    #[rustfmt::skip]
+    g: &[
+        1.0, 0.0, 0.0, 0.0, 0.0,
+        1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0,
+        -1.0 / 3.0, 1.0 / 3.0, -1.0 / 3.0, 1.0 / 3.0, -1.0 / 3.0,
+        -16.0 / 15.0, -8.0 / 15.0, -4.0 / 15.0, -2.0 / 15.0, -1.0 / 15.0,
+        1.0 / 15.0, -2.0 / 15.0, 4.0 / 15.0, -8.0 / 15.0, 16.0 / 15.0,
+        0.0, 0.0, 0.0, 0.0, 1.0,
+    ],
+    #[rustfmt::skip]
+    at: &[
+        1.0, 1.0, 1.0, 1.0, 1.0, 0.0,
+        0.0, 1.0, -1.0, 0.5, -2.0, 1.0,
+    ],
+};
+
+/// The form for an `r x r` kernel, if there is one.
+fn form(r: usize) -> Option<&'static Form> {
+    match r {
+        3 => Some(&F2_3),
+        5 => Some(&F2_5),
+        _ => None,
+    }
+}
+
+/// `dst[x] = Σ_i coef[i]·src_i[x]` over the nonzero coefficients (a coefficient of ±1 adds or
+/// subtracts exactly; the first term is `0 + c·x`, so `c·x`, rounded once).
+fn combine<'a>(dst: &mut [f32], coef: &[f32], src: impl Fn(usize) -> &'a [f32]) {
+    let mut first = true;
+    for (i, &c) in coef.iter().enumerate() {
+        if c == 0.0 {
+            continue;
+        }
+        let x = &src(i)[..dst.len()];
+        if first {
+            dst.iter_mut().zip(x).for_each(|(d, &x)| *d = c * x);
+        } else {
+            dst.iter_mut().zip(x).for_each(|(d, &x)| *d += c * x);
+        }
+        first = false;
+    }
+    if first {
+        dst.fill(0.0);
+    }
+}
+
+/// The kernel sides whose stride-1 convolutions run as [`WinogradConv`], from the environment
+/// variable `PRL_WINOGRAD`: `3x3` (F(2x2, 3x3)), `all` (and F(2x2, 5x5)); unset, `off` or
+/// anything else, none (the direct form, [`super::PackedConv`], for every layer: the default,
+/// which keeps the tracker's boxes within 1e-4 px of the official ones).
+pub fn kernel_sides() -> &'static [usize] {
+    static SIDES: std::sync::OnceLock<&'static [usize]> = std::sync::OnceLock::new();
+    SIDES.get_or_init(|| match std::env::var("PRL_WINOGRAD").map(|v| v.trim().to_ascii_lowercase()).as_deref() {
+        Ok("3x3") => &[3],
+        Ok("all") => &[3, 5],
+        _ => &[],
+    })
+}
+
+/// Whether a convolution of `shape` pays as F(2x2, r x r): a square kernel with a [`Form`] and
+/// stride 1, enough channels for the transforms (one pass per input and per output channel)
+/// to be small beside the products, and at least [`MIN_TILES`] tiles.
+pub(crate) fn suits(shape: &ConvShape) -> bool {
+    let (oh, ow) = shape.out();
+    shape.kh == shape.kw
+        && form(shape.kh).is_some()
+        && shape.stride == 1
+        && shape.ci >= 32
+        && shape.co >= 32
+        && oh.div_ceil(2) * ow.div_ceil(2) >= MIN_TILES
+}
+
+/// Tiles below which the direct form stays: PRL-Track's heads (11 x 11 outputs, 36 tiles)
+/// took 1.2-1.6 ms a layer as F(2x2, 3x3) against 1.1-1.25 direct on an AMD EPYC (Zen 2).
+const MIN_TILES: usize = 64;
+
+/// A 3x3 or 5x5 stride-1 convolution with constant weights as Winograd's F(2x2, r x r) (module
+/// docs):
+/// `out[n,o,y,x] = act(bias[o] + Σ_{c,i,j} pad(input)[n,c,y+i,x+j]·weight[o,c,i,j])`, up to
+/// rounding.
+#[derive(Clone)]
+pub struct WinogradConv {
+    shape: ConvShape,
+    form: &'static Form,
+    /// Tile rows and columns: `ceil(oh / 2)`, `ceil(ow / 2)`.
+    tiles: (usize, usize),
+    /// `U_ξ` for each of the `α²` positions `ξ`, packed as the direct kernel takes them:
+    /// `[ξ][block][c][ROWS]`.
+    weights: Arc<Vec<f32>>,
+    bias: Arc<Vec<f32>>,
+    act: Activation,
+    /// The output's shape where the fused nodes end in another shape than `[n, co, oh, ow]`.
+    reshape: Option<TVec<usize>>,
+}
+
+impl std::fmt::Debug for WinogradConv {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "WinogradConv({:?})", self.shape)
+    }
+}
+
+impl PartialEq for WinogradConv {
+    fn eq(&self, other: &Self) -> bool {
+        self.shape == other.shape
+            && same_bits(&self.weights, &other.weights)
+            && same_bits(&self.bias, &other.bias)
+            && self.act == other.act
+            && self.reshape == other.reshape
+    }
+}
+
+impl Eq for WinogradConv {}
+
+/// `U = G g Gᵀ` of one `r x r` kernel `g` (row-major) into `u` (`α x α`), in f64 (`G g`
+/// first, then `· Gᵀ`), rounded once.
+fn transform_kernel(f: &Form, g: &[f32], u: &mut [f32]) {
+    let (r, al) = (f.r, f.alpha);
+    let mut gg = [0f64; 6 * 5];
+    for a in 0..al {
+        for j in 0..r {
+            gg[a * r + j] = (0..r).map(|i| f.g[a * r + i] * g[i * r + j] as f64).sum();
+        }
+    }
+    for a in 0..al {
+        for b in 0..al {
+            u[a * al + b] = (0..r).map(|j| gg[a * r + j] * f.g[b * r + j]).sum::<f64>() as f32;
+        }
+    }
+}
+
+impl WinogradConv {
+    /// Transform and pack OIHW `weight` (`[co, ci, r, r]`) and `bias` (one value or `co`).
+    pub fn new(shape: ConvShape, weight: &[f32], bias: &[f32]) -> TractResult<WinogradConv> {
+        ensure!(suits(&shape), "WinogradConv: {shape:?} is not a convolution it serves");
+        let f = form(shape.kh).expect("suits");
+        let (ci, co, r, xis) = (shape.ci, shape.co, f.r, f.alpha * f.alpha);
+        ensure!(weight.len() == co * ci * r * r, "WinogradConv: {} weights for {shape:?}", weight.len());
+        ensure!(bias.len() == 1 || bias.len() == co, "WinogradConv: {} bias values for {shape:?}", bias.len());
+        let (oh, ow) = shape.out();
+        let tiles = (oh.div_ceil(2), ow.div_ceil(2));
+        let blocks = co.div_ceil(ROWS);
+        let mut packed = vec![0f32; xis * blocks * ci * ROWS];
+        let mut u = vec![0f32; xis];
+        for o in 0..co {
+            for c in 0..ci {
+                transform_kernel(f, &weight[(o * ci + c) * r * r..][..r * r], &mut u);
+                for (xi, &v) in u.iter().enumerate() {
+                    packed[((xi * blocks + o / ROWS) * ci + c) * ROWS + o % ROWS] = v;
+                }
+            }
+        }
+        let bias = (0..co).map(|o| if bias.len() == 1 { bias[0] } else { bias[o] }).collect();
+        Ok(WinogradConv {
+            shape,
+            form: f,
+            tiles,
+            weights: Arc::new(packed),
+            bias: Arc::new(bias),
+            act: Activation::NONE,
+            reshape: None,
+        })
+    }
+
+    /// The convolution followed by the nodes of `tail` ([`super::act::tail`]).
+    pub(crate) fn fused(self, tail: &Tail) -> TractResult<WinogradConv> {
+        ensure!(tail.bias.is_none(), "WinogradConv: a convolution has its own bias");
+        Ok(WinogradConv { act: tail.act, reshape: tail.reshaped(), ..self })
+    }
+
+    /// Tiles of one plane.
+    fn tile_count(&self) -> usize {
+        self.tiles.0 * self.tiles.1
+    }
+
+    /// Positions per channel of the transformed input and of the products: the tiles rounded
+    /// up to whole tiles of the kernel (the positions after the last tile are zero in, ignored
+    /// out), so that the kernel stores every tile whole (a partial one goes value by value).
+    fn stride(&self) -> usize {
+        self.tile_count().div_ceil(tile_positions()) * tile_positions()
+    }
+
+    /// Rows `ty0 .. ty0 + rows` of tiles of one channel's plane `src` (`[h, w]`), row `a` of
+    /// the tile's transform (`ξ = α·a + b`): `v[b]` (`b < α`) takes `Bᵀ d B`'s `(a, b)` value
+    /// of every tile of those rows (`rows·tw` values).
+    fn transform_input(
+        &self,
+        src: &[f32],
+        (ty0, rows): (usize, usize),
+        a: usize,
+        v: &mut [&mut [f32]],
+        sc: &mut Scratch,
+    ) {
+        let (s, f) = (&self.shape, self.form);
+        let al = f.alpha;
+        let tw = self.tiles.1;
+        // The padded rows read (`2·rows + α − 2` of `2·tw + α − 2`): the input's rows and
+        // columns where they fall, zero elsewhere (the padding, and under a last tile half
+        // outside).
+        let (hp, wp) = (2 * rows + al - 2, 2 * tw + al - 2);
+        assert!(s.pad[1] + s.w <= wp && wp.is_multiple_of(2));
+        sc.pad.clear();
+        sc.pad.resize(hp * wp, 0.0);
+        for yp in 0..hp {
+            let y = (2 * ty0 + yp).wrapping_sub(s.pad[0]);
+            if y < s.h {
+                sc.pad[yp * wp + s.pad[1]..][..s.w].copy_from_slice(&src[y * s.w..][..s.w]);
+            }
+        }
+        sc.row.resize(wp, 0.0);
+        sc.even.resize(wp / 2, 0.0);
+        sc.odd.resize(wp / 2, 0.0);
+        for ty in 0..rows {
+            // Row a of Bᵀ d for every tile of the row at once.
+            combine(&mut sc.row, &f.bt[a * al..][..al], |i| &sc.pad[(2 * ty + i) * wp..][..wp]);
+            for (k, pair) in sc.row.chunks_exact(2).enumerate() {
+                (sc.even[k], sc.odd[k]) = (pair[0], pair[1]);
+            }
+            // Then · B along the columns: tile tx reads columns 2tx .. 2tx + α − 1.
+            let (even, odd) = (&sc.even, &sc.odd);
+            for (b, v) in v.iter_mut().enumerate() {
+                let column = |j: usize| if j.is_multiple_of(2) { &even[j / 2..][..tw] } else { &odd[j / 2..][..tw] };
+                combine(&mut v[ty * tw..][..tw], &f.bt[b * al..][..al], column);
+            }
+        }
+    }
+
+    /// `act(bias + Aᵀ M A)` of channels `o0 .. o0 + g` (`out` holds their `[oh, ow]` planes)
+    /// from the products `m` (`[ξ][o][ld]`, `co_pad` channels). The transform runs on blocks of
+    /// `g·ld` values (every position of the group's channels), so its vectors are long whatever
+    /// the map's width.
+    fn transform_output(
+        &self,
+        m: &[f32],
+        (ld, co_pad): (usize, usize),
+        (o0, g): (usize, usize),
+        out: &mut [f32],
+        sc: &mut Scratch,
+    ) {
+        let f = self.form;
+        let al = f.alpha;
+        let (oh, ow) = self.shape.out();
+        let tw = self.tiles.1;
+        let n = g * ld;
+        // `c[i][j]`: row i of Aᵀ m, column j; then `y[2i + l]`, the outputs (2ty + i, 2tx + l).
+        sc.pad.resize(2 * al * n, 0.0);
+        sc.row.resize(4 * n, 0.0);
+        let (c, y) = (&mut sc.pad, &mut sc.row);
+        let block = |xi: usize| &m[(xi * co_pad + o0) * ld..][..n];
+        for i in 0..2 {
+            for j in 0..al {
+                combine(&mut c[(i * al + j) * n..][..n], &f.at[i * al..][..al], |k| block(k * al + j));
+            }
+        }
+        for i in 0..2 {
+            for l in 0..2 {
+                combine(&mut y[(2 * i + l) * n..][..n], &f.at[l * al..][..al], |j| &c[(i * al + j) * n..][..n]);
+            }
+        }
+        // Each tile to its 2x2 outputs, row of outputs by row.
+        for (o, plane) in out.chunks_exact_mut(oh * ow).enumerate() {
+            let bias = self.bias[o0 + o];
+            for (yo, row) in plane.chunks_exact_mut(ow).enumerate() {
+                let (ty, i) = (yo / 2, yo % 2);
+                let at = o * ld + ty * tw;
+                let (even, odd) = (&y[2 * i * n + at..][..tw], &y[(2 * i + 1) * n + at..][..tw]);
+                for (x, pair) in row.chunks_mut(2).enumerate() {
+                    pair[0] = bias + even[x];
+                    if let Some(v) = pair.get_mut(1) {
+                        *v = bias + odd[x];
+                    }
+                }
+            }
+            self.act.apply_all(plane);
+        }
+    }
+
+    /// One image: `src` (`[ci, h, w]`) into `dst` (`[co, oh, ow]`); `buf` is scratch for the
+    /// transformed input `[ξ][c][ld]` (with the kernel's slack after it) and the products
+    /// `[ξ][o][ld]` ([`Self::stride`]).
+    fn run(&self, src: &[f32], dst: &mut [f32], buf: &mut [f32]) {
+        let th = self.tiles.0;
+        let (ci, co, hw) = (self.shape.ci, self.shape.co, self.shape.h * self.shape.w);
+        let (al, xis) = (self.form.alpha, self.form.alpha * self.form.alpha);
+        let (blocks, ld, t) = (co.div_ceil(ROWS), self.stride(), self.tile_count());
+        let co_pad = blocks * ROWS;
+        let (oh, ow) = self.shape.out();
+        let (v, m) = buf.split_at_mut(xis * ci * ld + MAX_PX);
+        // On AVX2 the transformed input is packed `[ξ][run][c][24]` for
+        // `conv_kernel::packed_products_avx2`, so that each tile of the products reads its taps
+        // one after the other (through the direct kernel, rows `ld` apart, the products ran at
+        // 65 GFLOP/s where the direct convolution reaches 88 on an AMD EPYC); elsewhere
+        // `[ξ][c][ld]`, for the direct kernel.
+        #[cfg(target_arch = "x86_64")]
+        let px = (crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx2Fma).then_some(PACKED_PX);
+        #[cfg(not(target_arch = "x86_64"))]
+        let px: Option<usize> = None;
+        // Step 1: `v[ξ][c][tile]`, by row `a` of the tile's transform (the `α` blocks
+        // `ξ = α·a .. α·a + α − 1`) on the threads.
+        par_chunks(&mut v[..xis * ci * ld], al * ci * ld, |a, part| {
+            let mut sc = Scratch::default();
+            let Some(px) = px else {
+                let mut rows: Vec<&mut [f32]> = part.chunks_exact_mut(ld).collect();
+                for (c, src) in src.chunks_exact(hw).enumerate() {
+                    let mut v: Vec<&mut [f32]> = (0..al).map(|b| std::mem::take(&mut rows[b * ci + c])).collect();
+                    v.iter_mut().for_each(|v| v[t..].fill(0.0));
+                    self.transform_input(src, (0, th), a, &mut v, &mut sc);
+                }
+                return;
+            };
+            let mut rows_of = vec![0f32; al * ld];
+            for (c, src) in src.chunks_exact(hw).enumerate() {
+                let mut v: Vec<&mut [f32]> = rows_of.chunks_exact_mut(ld).collect();
+                self.transform_input(src, (0, th), a, &mut v, &mut sc);
+                for (b, row) in rows_of.chunks_exact(ld).enumerate() {
+                    for (r, run) in row.chunks_exact(px).enumerate() {
+                        part[b * ci * ld + (r * ci + c) * px..][..px].copy_from_slice(run);
+                    }
+                }
+            }
+        });
+        v[xis * ci * ld..].fill(0.0);
+        // Step 2: `m[ξ][o][tile] = Σ_c U_ξ[o][c]·v[ξ][c][tile]`, by block of `ROWS` output
+        // channels on the threads: the direct kernel with the channels as taps.
+        let layout = Layout { taps: (0..ci).map(|c| c * px.unwrap_or(ld)).collect(), wp: ld, oh: 1, ow: ld };
+        let zero = [0f32; ROWS];
+        let v: &[f32] = v;
+        let m = &mut m[..xis * co_pad * ld];
+        par_chunks(m, ROWS * ld, |k, m| {
+            let (xi, b) = (k / blocks, k % blocks);
+            let weights = &self.weights[(xi * blocks + b) * ci * ROWS..][..ci * ROWS];
+            let v = &v[xi * ci * ld..];
+            #[cfg(target_arch = "x86_64")]
+            if let Some(px) = px {
+                // SAFETY: the CPU has AVX2 and FMA (the table's kernel); the taps are `24c`
+                // for `c < ci`; `v` holds `ld / 24` runs of `24·ci` values, `weights`
+                // `ROWS·ci`, `m` `ROWS` rows of `ld`.
+                return unsafe { packed_products_avx2(v, &layout.taps, ld / px, weights, m, ld) };
+            }
+            channel_block(&layout, v, weights, &zero, Activation::NONE, m);
+        });
+        // Step 3: every output channel's plane, by group of channels on the threads.
+        let m: &[f32] = m;
+        par_chunks(dst, OUT_GROUP * oh * ow, |k, out| {
+            let mut sc = Scratch::default();
+            let g = out.len() / (oh * ow);
+            self.transform_output(m, (ld, co_pad), (k * OUT_GROUP, g), out, &mut sc);
+        });
+    }
+
+    /// Values of [`Self::run`]'s scratch: the transformed input, the kernel's slack and the
+    /// products.
+    fn scratch_len(&self) -> usize {
+        let xis = self.form.alpha * self.form.alpha;
+        xis * (self.shape.ci + self.shape.co.div_ceil(ROWS) * ROWS) * self.stride() + MAX_PX
+    }
+}
+
+/// Output channels per task of the output transform.
+const OUT_GROUP: usize = 16;
+
+/// A thread's buffers for the transforms.
+#[derive(Default)]
+struct Scratch {
+    pad: Vec<f32>,
+    row: Vec<f32>,
+    even: Vec<f32>,
+    odd: Vec<f32>,
+}
+
+impl Op for WinogradConv {
+    fn name(&self) -> StaticName {
+        "WinogradConv".into()
+    }
+
+    fn info(&self) -> TractResult<Vec<String>> {
+        let (s, r) = (&self.shape, self.form.r);
+        Ok(vec![format!(
+            "F(2x2, {r}x{r}), {} -> {} channels, pad {:?}, {}x{} tiles, activation {}",
+            s.ci,
+            s.co,
+            s.pad,
+            self.tiles.0,
+            self.tiles.1,
+            self.act.describe()
+        )])
+    }
+
+    op_as_typed_op!();
+}
+
+impl EvalOp for WinogradConv {
+    op_out_of_plan!();
+
+    fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let input = args_1!(inputs);
+        let s = &self.shape;
+        let &[n, ci, h, w] = input.shape() else { bail!("WinogradConv: input {:?} is not rank 4", input.shape()) };
+        ensure!((ci, h, w) == (s.ci, s.h, s.w), "WinogradConv: input {:?} for {s:?}", input.shape());
+        let input = input.try_as_plain_ram()?;
+        let input = input.as_slice::<f32>()?;
+        let (oh, ow) = s.out();
+        let fill = |out: &mut [f32]| {
+            // Written whole before it is read (the kernel's slack by `run`).
+            with_padded(self.scratch_len(), &[], |buf| {
+                for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * oh * ow)) {
+                    self.run(src, dst, buf);
+                }
+                Ok(())
+            })
+        };
+        // SAFETY: every output is written: each channel's plane, row by row.
+        let out = unsafe { output_tensor_written(&[n, s.co, oh, ow], fill)? };
+        let out = match &self.reshape {
+            Some(shape) => out.into_shape(shape)?,
+            None => out,
+        };
+        Ok(tvec!(out.into_tvalue()))
+    }
+}
+
+impl TypedOp for WinogradConv {
+    fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        if let Some(shape) = &self.reshape {
+            return Ok(tvec!(f32::fact(shape)));
+        }
+        let (oh, ow) = self.shape.out();
+        Ok(tvec!(f32::fact([inputs[0].shape[0].clone(), self.shape.co.into(), oh.into(), ow.into()])))
+    }
+
+    fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
+        // The products' multiply-adds (the transforms' additions are not counted).
+        let s = &self.shape;
+        let macs = self.form.alpha * self.form.alpha * s.co * s.ci * self.tile_count();
+        Ok(tvec!((Cost::FMA(f32::datum_type()), inputs[0].shape[0].clone() * macs)))
+    }
+
+    as_op!();
+}
+
+/// The [`WinogradConv`] for `node` of `model` if it is a float convolution of
+/// [`super::conv::plain_conv`]'s kind that [`suits`] F(2x2, r x r), of a side [`kernel_sides`] names.
+pub(crate) fn winograd(model: &TypedModel, node: &TypedNode) -> TractResult<Option<WinogradConv>> {
+    let Some((shape, weight, bias)) = super::conv::plain_conv(model, node)? else { return Ok(None) };
+    if !suits(&shape) || !kernel_sides().contains(&shape.kh) {
+        return Ok(None);
+    }
+    Ok(Some(WinogradConv::new(shape, weight, bias)?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ops::conv::direct;
+
+    #[test]
+    fn equals_the_direct_sum() {
+        // Odd and even output sizes (a last tile half outside), one-sided and no padding, a
+        // partial channel block; values of both signs, as after a convolution. 3x3 and 5x5.
+        for (s, tolerance) in [
+            (ConvShape { ci: 32, h: 17, w: 19, co: 40, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, 2e-6),
+            (ConvShape { ci: 48, h: 20, w: 20, co: 36, kh: 3, kw: 3, pad: [0; 4], stride: 1 }, 2e-6),
+            (ConvShape { ci: 33, h: 7, w: 60, co: 32, kh: 3, kw: 3, pad: [0, 1, 2, 0], stride: 1 }, 2e-6),
+            (ConvShape { ci: 64, h: 18, w: 18, co: 64, kh: 3, kw: 3, pad: [0; 4], stride: 1 }, 2e-6),
+            (ConvShape { ci: 32, h: 15, w: 18, co: 44, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 }, 1e-5),
+            (ConvShape { ci: 40, h: 21, w: 21, co: 32, kh: 5, kw: 5, pad: [0; 4], stride: 1 }, 1e-5),
+            (ConvShape { ci: 32, h: 12, w: 33, co: 32, kh: 5, kw: 5, pad: [1, 0, 0, 2], stride: 1 }, 1e-5),
+        ] {
+            let r = s.kh;
+            let n_in = s.ci * s.h * s.w;
+            let input: Vec<f32> = (0..2 * n_in).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
+            let weight: Vec<f32> =
+                (0..s.co * s.ci * r * r).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+            let bias: Vec<f32> = (0..s.co).map(|o| o as f32 / 4.0).collect();
+            let op = WinogradConv::new(s.clone(), &weight, &bias).unwrap();
+            let x = tract_ndarray::Array4::from_shape_vec((2, s.ci, s.h, s.w), input.clone()).unwrap();
+            let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();
+            let out = out[0].try_as_plain_ram().unwrap();
+            let out = out.as_slice::<f32>().unwrap();
+            let per_image = out.len() / 2;
+            for (n, got) in out.chunks_exact(per_image).enumerate() {
+                let want = direct(&s, 1, &input[n * n_in..(n + 1) * n_in], &weight, &bias);
+                let range = want.iter().fold(0f32, |m, v| m.max(v.abs()));
+                let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+                // A reordered f32 sum of 300-1000 terms through the transforms: a few units of
+                // the last place of the range (more for 5x5's larger coefficients), nowhere
+                // near a wrong tap or tile (off by the range itself).
+                assert!(worst <= tolerance * range, "{s:?} image {n}: off by {worst} of {range}");
+            }
+        }
+    }
+
+    #[test]
+    fn transforms_a_kernel_as_g_g_gt() {
+        // A kernel of ones: G·1·Gᵀ is the outer product of G's row sums.
+        for f in [&F2_3, &F2_5] {
+            let mut u = vec![0f32; f.alpha * f.alpha];
+            transform_kernel(f, &vec![1.0; f.r * f.r], &mut u);
+            let sums: Vec<f64> = f.g.chunks_exact(f.r).map(|row| row.iter().sum()).collect();
+            for a in 0..f.alpha {
+                for b in 0..f.alpha {
+                    assert_eq!(u[a * f.alpha + b], (sums[a] * sums[b]) as f32, "{f:?} ({a}, {b})");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn forms_interpolate_exactly() {
+        // Aᵀ[(Gg) ⊙ (Bᵀd)] is the 1-D correlation of d with g, for every unit d and g (in f64:
+        // the matrices themselves, not their rounding).
+        for f in [&F2_3, &F2_5] {
+            let (r, al) = (f.r, f.alpha);
+            for gi in 0..r {
+                for di in 0..al {
+                    let gg: Vec<f64> = (0..al).map(|a| f.g[a * r + gi]).collect();
+                    let bd: Vec<f64> = (0..al).map(|a| f.bt[a * al + di] as f64).collect();
+                    for l in 0..2 {
+                        let got: f64 = (0..al).map(|a| f.at[l * al + a] as f64 * gg[a] * bd[a]).sum();
+                        // y[l] = Σ_k d[l + k]·g[k]: 1 where di = l + gi.
+                        let want = if di == l + gi { 1.0 } else { 0.0 };
+                        assert!((got - want).abs() < 1e-12, "{f:?}: g {gi}, d {di}, y {l}: {got}");
+                    }
+                }
+            }
+        }
+    }
+}
