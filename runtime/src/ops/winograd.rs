@@ -276,32 +276,20 @@ impl WinogradConv {
         self.tile_count().div_ceil(tile_positions()) * tile_positions()
     }
 
-    /// Rows `ty0 .. ty0 + rows` of tiles of one channel's plane `src` (`[h, w]`), row `a` of
-    /// the tile's transform (`ξ = α·a + b`): `v[b]` (`b < α`) takes `Bᵀ d B`'s `(a, b)` value
-    /// of every tile of those rows (`rows·tw` values).
-    fn transform_input(
-        &self,
-        src: &[f32],
-        (ty0, rows): (usize, usize),
-        a: usize,
-        v: &mut [&mut [f32]],
-        sc: &mut Scratch,
-    ) {
+    /// Row `a` of the tile's transform (`ξ = α·a + b`) of one channel's plane `src` (`[h, w]`):
+    /// `v[b]` (`b < α`) takes `Bᵀ d B`'s `(a, b)` value of every tile (`th·tw` values).
+    fn transform_input(&self, src: &[f32], a: usize, v: &mut [&mut [f32]], sc: &mut Scratch) {
         let (s, f) = (&self.shape, self.form);
         let al = f.alpha;
-        let tw = self.tiles.1;
-        // The padded rows read (`2·rows + α − 2` of `2·tw + α − 2`): the input's rows and
-        // columns where they fall, zero elsewhere (the padding, and under a last tile half
-        // outside).
+        let (rows, tw) = self.tiles;
+        // The padded plane the tiles read (`2·th + α − 2` rows of `2·tw + α − 2`): the input
+        // where it falls, zero elsewhere (the padding, and under a last tile half outside).
         let (hp, wp) = (2 * rows + al - 2, 2 * tw + al - 2);
-        assert!(s.pad[1] + s.w <= wp && wp.is_multiple_of(2));
+        assert!(s.pad[0] + s.h <= hp && s.pad[1] + s.w <= wp && wp.is_multiple_of(2));
         sc.pad.clear();
         sc.pad.resize(hp * wp, 0.0);
-        for yp in 0..hp {
-            let y = (2 * ty0 + yp).wrapping_sub(s.pad[0]);
-            if y < s.h {
-                sc.pad[yp * wp + s.pad[1]..][..s.w].copy_from_slice(&src[y * s.w..][..s.w]);
-            }
+        for (y, row) in src.chunks_exact(s.w).enumerate() {
+            sc.pad[(y + s.pad[0]) * wp + s.pad[1]..][..s.w].copy_from_slice(row);
         }
         sc.row.resize(wp, 0.0);
         sc.even.resize(wp / 2, 0.0);
@@ -375,7 +363,6 @@ impl WinogradConv {
     /// transformed input `[ξ][c][ld]` (with the kernel's slack after it) and the products
     /// `[ξ][o][ld]` ([`Self::stride`]).
     fn run(&self, src: &[f32], dst: &mut [f32], buf: &mut [f32]) {
-        let th = self.tiles.0;
         let (ci, co, hw) = (self.shape.ci, self.shape.co, self.shape.h * self.shape.w);
         let (al, xis) = (self.form.alpha, self.form.alpha * self.form.alpha);
         let (blocks, ld, t) = (co.div_ceil(ROWS), self.stride(), self.tile_count());
@@ -400,14 +387,14 @@ impl WinogradConv {
                 for (c, src) in src.chunks_exact(hw).enumerate() {
                     let mut v: Vec<&mut [f32]> = (0..al).map(|b| std::mem::take(&mut rows[b * ci + c])).collect();
                     v.iter_mut().for_each(|v| v[t..].fill(0.0));
-                    self.transform_input(src, (0, th), a, &mut v, &mut sc);
+                    self.transform_input(src, a, &mut v, &mut sc);
                 }
                 return;
             };
             let mut rows_of = vec![0f32; al * ld];
             for (c, src) in src.chunks_exact(hw).enumerate() {
                 let mut v: Vec<&mut [f32]> = rows_of.chunks_exact_mut(ld).collect();
-                self.transform_input(src, (0, th), a, &mut v, &mut sc);
+                self.transform_input(src, a, &mut v, &mut sc);
                 for (b, row) in rows_of.chunks_exact(ld).enumerate() {
                     for (r, run) in row.chunks_exact(px).enumerate() {
                         part[b * ci * ld + (r * ci + c) * px..][..px].copy_from_slice(run);
@@ -455,11 +442,14 @@ impl WinogradConv {
 /// Output channels per task of the output transform.
 const OUT_GROUP: usize = 16;
 
-/// A thread's buffers for the transforms.
+/// A task's buffers for the transforms.
 #[derive(Default)]
 struct Scratch {
+    /// The input transform's padded plane; the output transform's `Aᵀ m`.
     pad: Vec<f32>,
+    /// A row of `Bᵀ d`; the output transform's outputs before they are scattered.
     row: Vec<f32>,
+    /// The row's values at even and odd columns.
     even: Vec<f32>,
     odd: Vec<f32>,
 }
