@@ -235,8 +235,9 @@ pub(crate) const PACKED_PX: usize = AVX2_PX;
 /// half of the block, stored whole.
 ///
 /// # Safety
-/// The CPU has AVX2 and FMA; `taps` is `24t` for `t < taps.len()` (not empty); `panel` holds
-/// `runs·24·taps.len()` values, `weights` `ROWS·taps.len()`, `out` `ROWS` rows of `ld >= 24·runs`.
+/// The CPU has AVX2 and FMA; `taps` is `24t` for `t < taps.len()` (not empty). The lengths
+/// (`panel` `runs·24·taps.len()` values, `weights` `ROWS·taps.len()`, `out` `ROWS` rows of
+/// `ld >= 24·runs`) and the last tap are asserted.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 pub(crate) unsafe fn packed_products_avx2(
@@ -250,7 +251,8 @@ pub(crate) unsafe fn packed_products_avx2(
     use std::arch::x86_64::*;
     const HALF: usize = ROWS / 2;
     let n = AVX2_PX * taps.len();
-    debug_assert!(panel.len() >= runs * n && weights.len() >= ROWS * taps.len() && out.len() >= ROWS * ld);
+    assert!(panel.len() >= runs * n && weights.len() >= ROWS * taps.len() && out.len() >= ROWS * ld);
+    assert!(ld >= runs * AVX2_PX && taps.last() == Some(&(AVX2_PX * (taps.len() - 1))));
     let zero = [[_mm256_setzero_ps(); 3]; 4];
     for k in 0..runs {
         for half in 0..ROWS / HALF {
@@ -330,10 +332,16 @@ unsafe fn positions_avx2_fma(
                         let mut vals = [0f32; 8];
                         // SAFETY: 8 values into an array of 8.
                         unsafe { _mm256_storeu_ps(vals.as_mut_ptr(), value) };
-                        for (i, &val) in vals.iter().enumerate().take(positions.saturating_sub(p)) {
-                            let (y, x) = ((p + i) / l.wp, (p + i) % l.wp);
+                        // Position by position from (y, x), the wide row's dropped columns
+                        // skipped (no division per value: small maps store most vectors here).
+                        let (mut y, mut x) = (y, x);
+                        for &val in vals.iter().take(positions.saturating_sub(p)) {
                             if x < l.ow {
                                 out[o * plane + y * l.ow + x] = val;
+                            }
+                            x += 1;
+                            if x == l.wp {
+                                (y, x) = (y + 1, 0);
                             }
                         }
                     }
