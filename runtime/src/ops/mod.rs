@@ -72,7 +72,8 @@ pub fn own_int8_operators() -> bool {
 pub struct Accelerated {
     /// Depthwise correlations made [`DepthwiseXCorr`].
     pub correlations: usize,
-    /// Convolutions made [`PackedConv`] (or [`WinogradConv`] for 3x3 stride-1 ones).
+    /// Convolutions made [`PackedConv`] (or [`WinogradConv`]: 3x3 and 5x5 stride-1 ones where
+    /// `PRL_WINOGRAD` asks for it).
     pub convolutions: usize,
     /// Depthwise convolutions with constant weights made [`DepthwiseConv`] (or
     /// [`DepthwiseConvHwc`] on channels-last data).
@@ -117,34 +118,13 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         // they read only the data input.
         let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = winograd::winograd(model, node)? {
             done.convolutions += 1;
-            let op = match act::tail(model, node, None)? {
-                Some(t) => {
-                    chain = t.chain.clone();
-                    op.fused(&t)?
-                }
-                None => op,
-            };
-            (Box::new(op), tvec![node.inputs[0]])
+            with_tail(model, node, op, WinogradConv::fused, &mut chain)?
         } else if let Some(op) = conv::packed(model, node)? {
             done.convolutions += 1;
-            let op = match act::tail(model, node, None)? {
-                Some(t) => {
-                    chain = t.chain.clone();
-                    op.fused(&t)?
-                }
-                None => op,
-            };
-            (Box::new(op), tvec![node.inputs[0]])
+            with_tail(model, node, op, PackedConv::fused, &mut chain)?
         } else if let Some(op) = dwconv::depthwise(model, node)? {
             done.depthwise += 1;
-            let op = match act::tail(model, node, None)? {
-                Some(t) => {
-                    chain = t.chain.clone();
-                    op.fused(&t)?
-                }
-                None => op,
-            };
-            (Box::new(op), tvec![node.inputs[0]])
+            with_tail(model, node, op, DepthwiseConv::fused, &mut chain)?
         } else if let Some(op) = dwconv_hwc::depthwise_hwc(model, node)? {
             done.depthwise += 1;
             (Box::new(op), tvec![node.inputs[0]])
@@ -210,6 +190,25 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         model.compact()?;
     }
     Ok(done)
+}
+
+/// A convolution `op` standing for `node` with the activation nodes after it fused in by `fuse`
+/// (`chain` then lists them all), boxed, with the data input it reads.
+fn with_tail<T: TypedOp>(
+    model: &TypedModel,
+    node: &TypedNode,
+    op: T,
+    fuse: fn(T, &act::Tail) -> TractResult<T>,
+    chain: &mut Vec<usize>,
+) -> TractResult<(Box<dyn TypedOp>, TVec<OutletId>)> {
+    let op = match act::tail(model, node, None)? {
+        Some(t) => {
+            *chain = t.chain.clone();
+            fuse(op, &t)?
+        }
+        None => op,
+    };
+    Ok((Box::new(op), tvec![node.inputs[0]]))
 }
 
 /// A zero-filled tensor of `shape` that `fill` writes an operator's output into. (tract's
