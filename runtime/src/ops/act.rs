@@ -159,6 +159,24 @@ impl Tail {
     }
 }
 
+/// An operator's output `out` in the shape the nodes it took in end in (`reshape`, from
+/// [`Tail::reshaped`]), where they change it.
+pub(crate) fn reshape_output(out: Tensor, reshape: Option<&TVec<usize>>) -> TractResult<Tensor> {
+    match reshape {
+        Some(shape) => out.into_shape(shape),
+        None => Ok(out),
+    }
+}
+
+/// The f32 output fact of an operator that took in the nodes after it: `reshape`'s shape where
+/// they change it, else `fact()`.
+pub(crate) fn output_fact(reshape: Option<&TVec<usize>>, fact: impl FnOnce() -> TypedFact) -> TypedFact {
+    match reshape {
+        Some(shape) => f32::fact(shape),
+        None => fact(),
+    }
+}
+
 /// The sole consumer of `node`'s single output, if it has exactly one and that output is not
 /// one of the model's.
 pub(super) fn sole_consumer<'m>(model: &'m TypedModel, node: &TypedNode) -> Option<&'m TypedNode> {

@@ -14,7 +14,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::act::{Activation, Tail};
+use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
 use super::conv_lanes::LanePack;
 use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits};
@@ -237,6 +237,22 @@ impl ConvShape {
 }
 
 impl ConvShape {
+    /// The batch size of an input of `shape` (`[n, ci, h, w]`) to `op`, or an error naming
+    /// `op` where it is not this convolution's.
+    pub(crate) fn batch_of(&self, op: &str, shape: &[usize]) -> TractResult<usize> {
+        let &[n, ci, h, w] = shape else { bail!("{op}: input {shape:?} is not rank 4") };
+        ensure!((ci, h, w) == (self.ci, self.h, self.w), "{op}: input {shape:?} for {self:?}");
+        Ok(n)
+    }
+
+    /// The output fact `[n, co, oh, ow]` for a batch of `n`.
+    pub(crate) fn output_fact(&self, n: &TDim) -> TypedFact {
+        let (oh, ow) = self.out();
+        f32::fact([n.clone(), self.co.into(), oh.into(), ow.into()])
+    }
+}
+
+impl ConvShape {
     /// Write one input plane `src` (`[h, w]`) into its zero-padded form `dst` (`stride²` phases
     /// of `[hq, wq]`, [`Self::phase`]); `dst`'s padding is left as it is (zero).
     pub(crate) fn pad_plane(&self, src: &[f32], dst: &mut [f32]) {
@@ -453,8 +469,7 @@ impl EvalOp for PackedConv {
     fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
         let input = args_1!(inputs);
         let s = &self.shape;
-        let &[n, ci, h, w] = input.shape() else { bail!("PackedConv: input {:?} is not rank 4", input.shape()) };
-        ensure!((ci, h, w) == (s.ci, s.h, s.w), "PackedConv: input {:?} for {s:?}", input.shape());
+        let (n, ci, h, w) = (s.batch_of("PackedConv", input.shape())?, s.ci, s.h, s.w);
         let input = input.try_as_plain_ram()?;
         let input = input.as_slice::<f32>()?;
         let (oh, ow) = s.out();
@@ -486,21 +501,13 @@ impl EvalOp for PackedConv {
         // SAFETY: every output is written: the tiles cover every position of every row, each
         // channel block (or lanes' block) writes all its channels.
         let out = unsafe { output_tensor_written(&[n, s.co, oh, ow], fill)? };
-        let out = match &self.reshape {
-            Some(shape) => out.into_shape(shape)?,
-            None => out,
-        };
-        Ok(tvec!(out.into_tvalue()))
+        Ok(tvec!(reshape_output(out, self.reshape.as_ref())?.into_tvalue()))
     }
 }
 
 impl TypedOp for PackedConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
-        if let Some(shape) = &self.reshape {
-            return Ok(tvec!(f32::fact(shape)));
-        }
-        let (oh, ow) = self.shape.out();
-        Ok(tvec!(f32::fact([inputs[0].shape[0].clone(), self.shape.co.into(), oh.into(), ow.into()])))
+        Ok(tvec!(output_fact(self.reshape.as_ref(), || self.shape.output_fact(&inputs[0].shape[0]))))
     }
 
     fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {

@@ -13,7 +13,7 @@ use std::sync::Arc;
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::act::{Activation, Tail};
+use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv::{ConstConv, ConvShape};
 use super::{output_tensor_written, par_chunks, same_bits};
 
@@ -362,22 +362,22 @@ impl EvalOp for DepthwiseConv {
         };
         // SAFETY: every channel's plane is written whole (every row, every column block).
         let out = unsafe { output_tensor_written(&shape, fill)? };
-        let out = match &self.reshape {
-            Some(shape) => out.into_shape(shape)?,
-            None => out,
-        };
-        Ok(tvec!(out.into_tvalue()))
+        Ok(tvec!(reshape_output(out, self.reshape.as_ref())?.into_tvalue()))
     }
 }
 
 impl TypedOp for DepthwiseConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
-        if let Some(shape) = &self.reshape {
-            return Ok(tvec!(f32::fact(shape)));
-        }
-        let (oh, ow) = self.shape.out();
-        let (c, oh, ow): (TDim, TDim, TDim) = (self.shape.co.into(), oh.into(), ow.into());
-        Ok(tvec!(if self.batch { f32::fact([inputs[0].shape[0].clone(), c, oh, ow]) } else { f32::fact([c, oh, ow]) }))
+        let fact = || {
+            let (oh, ow) = self.shape.out();
+            let (c, oh, ow): (TDim, TDim, TDim) = (self.shape.co.into(), oh.into(), ow.into());
+            if self.batch {
+                f32::fact([inputs[0].shape[0].clone(), c, oh, ow])
+            } else {
+                f32::fact([c, oh, ow])
+            }
+        };
+        Ok(tvec!(output_fact(self.reshape.as_ref(), fact)))
     }
 
     fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {

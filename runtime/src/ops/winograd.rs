@@ -35,7 +35,7 @@ use std::sync::Arc;
 
 use tract_nnef::internal::*;
 
-use super::act::{Activation, Tail};
+use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv::ConvShape;
 use super::conv_kernel::{channel_block, tile_positions, Layout, MAX_PX, ROWS};
 #[cfg(target_arch = "x86_64")]
@@ -481,8 +481,7 @@ impl EvalOp for WinogradConv {
     fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
         let input = args_1!(inputs);
         let s = &self.shape;
-        let &[n, ci, h, w] = input.shape() else { bail!("WinogradConv: input {:?} is not rank 4", input.shape()) };
-        ensure!((ci, h, w) == (s.ci, s.h, s.w), "WinogradConv: input {:?} for {s:?}", input.shape());
+        let (n, ci, h, w) = (s.batch_of("WinogradConv", input.shape())?, s.ci, s.h, s.w);
         let input = input.try_as_plain_ram()?;
         let input = input.as_slice::<f32>()?;
         let (oh, ow) = s.out();
@@ -497,21 +496,13 @@ impl EvalOp for WinogradConv {
         };
         // SAFETY: every output is written: each channel's plane, row by row.
         let out = unsafe { output_tensor_written(&[n, s.co, oh, ow], fill)? };
-        let out = match &self.reshape {
-            Some(shape) => out.into_shape(shape)?,
-            None => out,
-        };
-        Ok(tvec!(out.into_tvalue()))
+        Ok(tvec!(reshape_output(out, self.reshape.as_ref())?.into_tvalue()))
     }
 }
 
 impl TypedOp for WinogradConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
-        if let Some(shape) = &self.reshape {
-            return Ok(tvec!(f32::fact(shape)));
-        }
-        let (oh, ow) = self.shape.out();
-        Ok(tvec!(f32::fact([inputs[0].shape[0].clone(), self.shape.co.into(), oh.into(), ow.into()])))
+        Ok(tvec!(output_fact(self.reshape.as_ref(), || self.shape.output_fact(&inputs[0].shape[0]))))
     }
 
     fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
