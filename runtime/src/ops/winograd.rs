@@ -181,6 +181,9 @@ pub struct WinogradConv {
     form: &'static Form,
     /// Tile rows and columns: `ceil(oh / 2)`, `ceil(ow / 2)`.
     tiles: (usize, usize),
+    /// The products' taps (input channel `c` at `c·ld`, or `c·24` within a packed run) and
+    /// one row of `ld` positions ([`Self::stride`]), made once.
+    layout: Arc<Layout>,
     /// `U_ξ` for each of the `α²` positions `ξ`, packed as the direct kernel takes them:
     /// `[ξ][block][c][ROWS]`.
     weights: Arc<Vec<f32>>,
@@ -247,10 +250,14 @@ impl WinogradConv {
             }
         }
         let bias = (0..co).map(|o| if bias.len() == 1 { bias[0] } else { bias[o] }).collect();
+        let ld = (tiles.0 * tiles.1).div_ceil(tile_positions()) * tile_positions();
+        let step = Self::packed_run().unwrap_or(ld);
+        let layout = Layout { taps: (0..ci).map(|c| c * step).collect(), wp: ld, oh: 1, ow: ld };
         Ok(WinogradConv {
             shape,
             form: f,
             tiles,
+            layout: Arc::new(layout),
             weights: Arc::new(packed),
             bias: Arc::new(bias),
             act: Activation::NONE,
@@ -269,11 +276,21 @@ impl WinogradConv {
         self.tiles.0 * self.tiles.1
     }
 
+    /// Tiles per run where the transformed input is packed in runs (on AVX2, for
+    /// `conv_kernel::packed_products_avx2`); `None` where it is not.
+    fn packed_run() -> Option<usize> {
+        #[cfg(target_arch = "x86_64")]
+        if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx2Fma {
+            return Some(PACKED_PX);
+        }
+        None
+    }
+
     /// Positions per channel of the transformed input and of the products: the tiles rounded
     /// up to whole tiles of the kernel (the positions after the last tile are zero in, ignored
     /// out), so that the kernel stores every tile whole (a partial one goes value by value).
     fn stride(&self) -> usize {
-        self.tile_count().div_ceil(tile_positions()) * tile_positions()
+        self.layout.wp
     }
 
     /// Row `a` of the tile's transform (`ξ = α·a + b`) of one channel's plane `src` (`[h, w]`):
@@ -374,10 +391,7 @@ impl WinogradConv {
         // one after the other (through the direct kernel, rows `ld` apart, the products ran at
         // 65 GFLOP/s where the direct convolution reaches 88 on an AMD EPYC); elsewhere
         // `[ξ][c][ld]`, for the direct kernel.
-        #[cfg(target_arch = "x86_64")]
-        let px = (crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx2Fma).then_some(PACKED_PX);
-        #[cfg(not(target_arch = "x86_64"))]
-        let px: Option<usize> = None;
+        let px = Self::packed_run();
         // Step 1: `v[ξ][c][tile]`, by row `a` of the tile's transform (the `α` blocks
         // `ξ = α·a .. α·a + α − 1`) on the threads.
         par_chunks(&mut v[..xis * ci * ld], al * ci * ld, |a, part| {
@@ -405,7 +419,6 @@ impl WinogradConv {
         v[xis * ci * ld..].fill(0.0);
         // Step 2: `m[ξ][o][tile] = Σ_c U_ξ[o][c]·v[ξ][c][tile]`, by block of `ROWS` output
         // channels on the threads: the direct kernel with the channels as taps.
-        let layout = Layout { taps: (0..ci).map(|c| c * px.unwrap_or(ld)).collect(), wp: ld, oh: 1, ow: ld };
         let zero = [0f32; ROWS];
         let v: &[f32] = v;
         let m = &mut m[..xis * co_pad * ld];
@@ -418,9 +431,9 @@ impl WinogradConv {
                 // SAFETY: the CPU has AVX2 and FMA (the table's kernel); the taps are `24c`
                 // for `c < ci`; `v` holds `ld / 24` runs of `24·ci` values, `weights`
                 // `ROWS·ci`, `m` `ROWS` rows of `ld`.
-                return unsafe { packed_products_avx2(v, &layout.taps, ld / px, weights, m, ld) };
+                return unsafe { packed_products_avx2(v, &self.layout.taps, ld / px, weights, m, ld) };
             }
-            channel_block(&layout, v, weights, &zero, Activation::NONE, m);
+            channel_block(&self.layout, v, weights, &zero, Activation::NONE, m);
         });
         // Step 3: every output channel's plane, by group of channels on the threads.
         let m: &[f32] = m;
