@@ -353,6 +353,18 @@ fn cli_imports_compiles_and_tracks() {
     ]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("the model is a nanotrack"));
+    // The Winograd choice is recorded in the plan (absent when off); an unknown one is refused.
+    let plan_json = |dir: &Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(dir.join("plan.json")).unwrap()).unwrap()
+    };
+    assert!(plan_json(&plan).get("winograd").is_none());
+    let fast = tmp.path().join("plan-winograd");
+    let out = common::ok(&common::prl(&["compile", "--model", &s(&model), "--winograd", "all", "--out", &s(&fast)]));
+    assert!(out.contains("fp32, Winograd all"), "{out}");
+    assert_eq!(plan_json(&fast)["winograd"], "all");
+    let o = common::prl(&["compile", "--model", &s(&model), "--winograd", "5x5", "--out", &s(&fast)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("`5x5` is not one of off, 3x3, all"), "{err}");
     // Settings files with NaN (TOML has it), a zero stride, or no such file: one line each,
     // naming the file, and no plan written.
     let own = std::fs::read_to_string(common::nanotrack_dir().join("tracker.toml")).unwrap();

@@ -342,6 +342,57 @@ fn bench_reports_stages_and_operators() {
     assert!(out.contains("slowest operators of the template graph"), "{out}");
 }
 
+/// A plan's Winograd choice (`plan.json`'s `winograd`) puts `WinogradConv` in both graphs where
+/// it serves (PRL-Track's 5x5 layer 2 and 3x3 layers 3-5), `PRL_WINOGRAD` overrides it, and a
+/// choice the runtime does not know is a one-line error naming the manifest.
+#[test]
+fn winograd_is_the_plan_s_choice_and_the_environment_overrides_it() {
+    let reference = common::reference_plan();
+    let dir = tempfile::tempdir().unwrap();
+    let plan = dir.path().join("plan");
+    std::fs::create_dir(&plan).unwrap();
+    for f in std::fs::read_dir(&reference).unwrap() {
+        let f = f.unwrap().path();
+        std::fs::copy(&f, plan.join(f.file_name().unwrap())).unwrap();
+    }
+    let manifest = plan.join("plan.json");
+    let mut m: serde_json::Value = serde_json::from_slice(&std::fs::read(&manifest).unwrap()).unwrap();
+    m["winograd"] = "all".into();
+    std::fs::write(&manifest, serde_json::to_vec(&m).unwrap()).unwrap();
+    let json = dir.path().join("bench.json");
+    let bench = |env: Option<&str>| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_prl"));
+        cmd.args(["bench", "--plan", plan.to_str().unwrap(), "--runs", "1", "--top", "60"]);
+        cmd.args(["--json", json.to_str().unwrap()]);
+        match env {
+            Some(v) => cmd.env("PRL_WINOGRAD", v),
+            None => cmd.env_remove("PRL_WINOGRAD"),
+        };
+        let o = cmd.output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+        let kernels = |graph: &str| -> Vec<String> {
+            let ops = report[graph].as_array().unwrap().iter();
+            ops.filter(|o| o["op"] == "WinogradConv").map(|o| o["kernel"].as_str().unwrap().to_string()).collect()
+        };
+        (String::from_utf8_lossy(&o.stdout).into_owned(), kernels("top_ops"), kernels("template_ops"))
+    };
+    let (out, search, template) = bench(None);
+    assert!(out.contains("convolutions as Winograd's: all (the plan's choice)"), "{out}");
+    assert_eq!(search.len(), 4, "layers 2, 3, 4 and 5 (xf5): {search:?}");
+    assert_eq!(search.iter().filter(|k| k.contains("F(2x2,5x5)")).count(), 1, "{search:?}");
+    assert_eq!(template.len(), 1, "the template's layer 2 (its 3x3 maps have under 64 tiles): {template:?}");
+    let (out, search, template) = bench(Some("off"));
+    assert!(out.contains("convolutions as Winograd's: off (PRL_WINOGRAD)"), "{out}");
+    assert!(search.is_empty() && template.is_empty(), "{search:?} {template:?}");
+    m["winograd"] = "5x5".into();
+    std::fs::write(&manifest, serde_json::to_vec(&m).unwrap()).unwrap();
+    let o = prl(&["bench", "--plan", plan.to_str().unwrap(), "--runs", "1"]);
+    let err = stderr(&o);
+    assert!(!o.status.success() && err.lines().count() == 1, "{err}");
+    assert!(err.contains("plan.json") && err.contains("5x5"), "{err}");
+}
+
 /// `list_frames` takes jpg, png, bmp and webp: each lossless format decodes to the same pixels.
 #[test]
 fn png_bmp_and_webp_frames_decode_alike() {

@@ -66,6 +66,7 @@ fn compile_with(
         tracker: tracker.clone(),
         variant: model.manifest.variant.clone(),
         optimizer_knobs: optimizer_knobs(),
+        winograd: Default::default(),
         quantization,
     };
     Ok(CompiledPlan { manifest, template, search })

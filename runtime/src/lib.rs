@@ -25,6 +25,7 @@ mod crop;
 mod cropper;
 mod error;
 mod family;
+mod fast_conv;
 mod frame;
 mod isa;
 mod manifest;
@@ -43,6 +44,7 @@ pub use config::{Family, LongTermConfig, StateSignal, TrackerConfig};
 pub use crop::{crop_to_tensor, get_subwindow};
 pub use cropper::{Cropper, TemplateCrop};
 pub use error::{Error, Result};
+pub use fast_conv::{winograd_warning, Winograd};
 pub use frame::{Frame, PixelLayout};
 pub use isa::{isa, isa_warning, F32Kernel, Isa, Needs, F32_KERNELS};
 pub use manifest::{
@@ -50,7 +52,7 @@ pub use manifest::{
 };
 pub use nnef::nnef;
 pub use ops::{
-    accelerate, own_operators, Accelerated, AttnMix, AttnScores, Binary, BroadcastBinary, ChannelMaxPool, ConstMatMul,
+    accelerate, accelerate_with, own_operators, Accelerated, AttnMix, AttnScores, Binary, BroadcastBinary, ChannelMaxPool, ConstMatMul,
     ConvShape, DepthwiseConv, DepthwiseConvHwc, DepthwiseXCorr, LayerNormCore, PackedConv, PackedQConv, PointwiseConv,
     QuantizeU8, RowSoftmax, SqueezeExcite, WinogradConv,
 };

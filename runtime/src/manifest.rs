@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::TrackerConfig;
+use crate::{TrackerConfig, Winograd};
 
 /// Version of the plan layout this runtime reads.
 pub const PLAN_FORMAT_VERSION: u32 = 1;
@@ -114,6 +114,10 @@ pub struct PlanManifest {
     /// the graphs: kernel choices the compiler measured and made for this plan.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub optimizer_knobs: std::collections::BTreeMap<String, String>,
+    /// The convolutions the runtime runs as Winograd's fast algorithm (`prl compile
+    /// --winograd`; absent: none). `PRL_WINOGRAD` overrides it when the plan is loaded.
+    #[serde(default, skip_serializing_if = "Winograd::is_off")]
+    pub winograd: Winograd,
     /// How the search graph was quantised (int8 plans only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub quantization: Option<crate::QuantizationInfo>,

@@ -10,7 +10,7 @@ use sha2::{Digest, Sha256};
 use tract_nnef::prelude::*;
 use tract_nnef::tract_core::knobs::KnobScope;
 
-use crate::{nnef, Error, PlanManifest, Result, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
+use crate::{nnef, Error, PlanManifest, Result, Winograd, PLAN_FORMAT_VERSION, PLAN_MANIFEST};
 
 /// An optimised graph, and whether it runs on the calling thread whatever the thread setting.
 #[derive(Clone)]
@@ -58,6 +58,8 @@ impl Runnable {
 pub struct Plan {
     dir: PathBuf,
     manifest: PlanManifest,
+    /// The convolutions that run as Winograd's: the manifest's choice, or `PRL_WINOGRAD`'s.
+    winograd: Winograd,
     template: Runnable,
     search: Runnable,
 }
@@ -155,19 +157,26 @@ impl Plan {
         manifest.check().map_err(|msg| bad(&mpath, msg))?;
         let knobs = manifest.optimizer_knobs.iter().map(|(k, v)| (k.as_str(), v.as_str()));
         let knobs = KnobScope::new(knobs).map_err(|e| bad(&mpath, format!("optimizer_knobs: {e}")))?;
+        let winograd = Winograd::from_env().unwrap_or(manifest.winograd);
         // The two graphs load and optimise independently: side by side.
         let (template, search) = std::thread::scope(|s| {
-            let t = s.spawn(|| load_graph(&dir, &manifest.template, &knobs));
-            let search = load_graph(&dir, &manifest.search, &knobs);
+            let t = s.spawn(|| load_graph(&dir, &manifest.template, &knobs, winograd));
+            let search = load_graph(&dir, &manifest.search, &knobs, winograd);
             (t.join().expect("template loader panicked"), search)
         });
         let (template, search) = (template?, search?);
-        Ok(Plan { dir, manifest, template, search })
+        Ok(Plan { dir, manifest, winograd, template, search })
     }
 
     /// The plan's manifest.
     pub fn manifest(&self) -> &PlanManifest {
         &self.manifest
+    }
+
+    /// The convolutions that run as Winograd's: the plan's choice (`plan.json`'s `winograd`),
+    /// or `PRL_WINOGRAD`'s where it is set ([`Winograd::from_env`]).
+    pub fn winograd(&self) -> Winograd {
+        self.winograd
     }
 
     /// The directory the plan was loaded from.
@@ -361,7 +370,7 @@ fn run_err(graph: &'static str, e: TractError) -> Error {
     Error::Run { graph, msg: format!("{e:#}").replace('\n', " ") }
 }
 
-fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<Runnable> {
+fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope, winograd: Winograd) -> Result<Runnable> {
     let path = dir.join(&info.file);
     let bytes = std::fs::read(&path).map_err(|e| Error::Io { path: path.clone(), err: e })?;
     let bad = |msg: String| Error::Plan { path: path.clone(), msg };
@@ -417,7 +426,7 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope) -> Result<
             // graph read from NNEF is not in the form the runtime's operators match).
             let mut model = model.into_decluttered()?;
             if crate::ops::own_operators() {
-                crate::accelerate(&mut model)?;
+                crate::accelerate_with(&mut model, winograd)?;
             }
             model.optimize()?; // codegen only: the model is decluttered already
             TypedSimplePlan::new(model).map(Runnable::new)

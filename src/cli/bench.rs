@@ -311,6 +311,15 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     println!("runtime kernels may use: {}", prl_runtime::isa().describe());
+    if let Some(w) = prl_runtime::winograd_warning() {
+        eprintln!("warning: {w}");
+    }
+    let winograd = tracker.plan().winograd();
+    let forced = prl_runtime::Winograd::from_env().is_some();
+    if !winograd.is_off() || forced {
+        let from = if forced { "PRL_WINOGRAD" } else { "the plan's choice" };
+        println!("convolutions as Winograd's: {} ({from})", winograd.name());
+    }
     if !prl_runtime::own_operators() {
         println!("operators: tract's alone (PRL_OPS=tract)");
     }

@@ -199,6 +199,16 @@ pub fn peak_rss_mb() -> Option<f64> {
     }
 }
 
+/// `, Winograd 3x3` (or `all`) after a plan's precision where it runs convolutions as
+/// Winograd's; nothing where it does not.
+pub fn winograd_note(w: prl_runtime::Winograd) -> String {
+    if w.is_off() {
+        String::new()
+    } else {
+        format!(", Winograd {}", w.name())
+    }
+}
+
 /// `--variant` values: the ablation variants of the paper's Table II.
 pub fn parse_variant(s: &str) -> Result<prl_compiler::net::Variant, String> {
     use prl_compiler::net::Variant;

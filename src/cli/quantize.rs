@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::bail;
 use clap::Args;
 use prl_compiler::{compile_int8, BuiltModel, Method, PerChannel, QuantizeOptions};
-use prl_runtime::{LayerDecision, QuantizationInfo, TrackerConfig, PLAN_MANIFEST};
+use prl_runtime::{LayerDecision, QuantizationInfo, TrackerConfig, Winograd, PLAN_MANIFEST};
 use prl_track::CalibrationSpec;
 
 use super::compile::settings_for;
@@ -23,6 +23,10 @@ pub struct QuantizeArgs {
     /// PRL-Track's).
     #[arg(long, value_name = "FILE", requires = "model")]
     tracker: Option<PathBuf>,
+    /// Float convolutions to run as Winograd's (off, 3x3, all; `prl compile --winograd`):
+    /// default the fp32 plan's choice (off with --model).
+    #[arg(long, value_name = "WHICH")]
+    winograd: Option<Winograd>,
     /// Calibration sequences (OTB/UAV123 layout, with ground truth); keep them apart from the
     /// sequences you evaluate on.
     #[arg(long, value_name = "SEQ_DIR", num_args = 1.., required = true)]
@@ -75,25 +79,26 @@ fn parse_per_channel(s: &str) -> Result<PerChannel, String> {
     PerChannel::parse(s).ok_or_else(|| format!("`{s}` is not a setting; expected auto, on or off"))
 }
 
-/// The fp32 model a plan was compiled from, rebuilt from the sources its manifest records.
-fn model_of_plan(dir: &Path) -> anyhow::Result<(BuiltModel, TrackerConfig)> {
+/// The fp32 model a plan was compiled from, rebuilt from the sources its manifest records, with
+/// the plan's tracker settings and Winograd choice.
+fn model_of_plan(dir: &Path) -> anyhow::Result<(BuiltModel, TrackerConfig, Winograd)> {
     let path = dir.join(PLAN_MANIFEST);
     let m = super::read_plan_manifest(dir)?;
     if m.precision != "fp32" {
         bail!("{}: the plan is already {}; quantise an fp32 plan", path.display(), m.precision);
     }
-    Ok((prl_compiler::rebuild_model(&m, &path)?, m.tracker))
+    Ok((prl_compiler::rebuild_model(&m, &path)?, m.tracker, m.winograd))
 }
 
 pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
     if a.frames_per_seq == 0 {
         bail!("--frames-per-seq must be at least 1");
     }
-    let (model, tracker) = match &a.model {
+    let (model, tracker, winograd) = match &a.model {
         Some(dir) => {
             let model = BuiltModel::read(dir)?;
             let tracker = settings_for(&model, a.tracker.as_deref())?;
-            (model, tracker)
+            (model, tracker, Winograd::Off)
         }
         None => {
             let pb = super::spinner(&format!("rebuilding the network of {}", a.plan.display()));
@@ -129,7 +134,10 @@ pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
     bar.finish_and_clear();
     let (int8, info) = result?;
     let pb = super::spinner("compiling the int8 plan");
-    let plan = compile_int8(&int8, &tracker, info).and_then(|p| p.write(&a.out).map(|_| p));
+    let plan = compile_int8(&int8, &tracker, info).and_then(|mut p| {
+        p.manifest.winograd = a.winograd.unwrap_or(winograd);
+        p.write(&a.out).map(|_| p)
+    });
     pb.finish_and_clear();
     let plan = plan?;
     let info = plan.manifest.quantization.as_ref().expect("an int8 plan records its quantisation");

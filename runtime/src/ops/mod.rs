@@ -47,6 +47,7 @@ pub use winograd::WinogradConv;
 pub use xcorr::DepthwiseXCorr;
 
 use tract_nnef::internal::*;
+use crate::Winograd;
 
 /// Whether plans are loaded with the runtime's own operators: yes unless the environment
 /// variable `PRL_OPS` is `tract` (tract's operators alone: what the runtime's own are measured
@@ -73,7 +74,7 @@ pub struct Accelerated {
     /// Depthwise correlations made [`DepthwiseXCorr`].
     pub correlations: usize,
     /// Convolutions made [`PackedConv`] (or [`WinogradConv`]: 3x3 and 5x5 stride-1 ones where
-    /// `PRL_WINOGRAD` asks for it).
+    /// the [`Winograd`] choice asks for it).
     pub convolutions: usize,
     /// Depthwise convolutions with constant weights made [`DepthwiseConv`] (or
     /// [`DepthwiseConvHwc`] on channels-last data).
@@ -100,9 +101,15 @@ pub struct Accelerated {
     pub squeeze_excite: usize,
 }
 
-/// Replace the nodes of a typed `model` that have a faster operator here (names kept); call it
-/// before tract optimises the model.
+/// [`accelerate_with`] the convolutions that `PRL_WINOGRAD` asks for as Winograd's (none when
+/// it is unset).
 pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
+    accelerate_with(model, Winograd::from_env().unwrap_or_default())
+}
+
+/// Replace the nodes of a typed `model` that have a faster operator here (names kept), the
+/// convolutions `winograd` names as [`WinogradConv`]; call it before tract optimises the model.
+pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResult<Accelerated> {
     let mut done = Accelerated::default();
     // Nodes a fused operator stands for: left to be removed, not replaced.
     let mut fused = std::collections::HashSet::new();
@@ -116,7 +123,7 @@ pub fn accelerate(model: &mut TypedModel) -> TractResult<Accelerated> {
         let mut chain = vec![id];
         // Convolutions hold their weights and bias, and take in the activation after them:
         // they read only the data input.
-        let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = winograd::winograd(model, node)? {
+        let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = winograd::winograd(model, node, winograd)? {
             done.convolutions += 1;
             with_tail(model, node, op, WinogradConv::fused, &mut chain)?
         } else if let Some(op) = conv::packed(model, node)? {

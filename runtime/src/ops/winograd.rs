@@ -21,7 +21,7 @@
 //!    (AVX-512, AVX2 + FMA, NEON, portable) serves;
 //! 3. the output transform `Aᵀ M A`, the bias and the activation, written into the output.
 //!
-//! **Off unless asked for** (`PRL_WINOGRAD`, [`kernel_sides`]). The sums differ from the direct
+//! **Off unless asked for** ([`crate::Winograd`]: `prl compile --winograd`, `PRL_WINOGRAD`). The sums differ from the direct
 //! form's in their rounding. F(2x2, 3x3)'s transforms add and subtract at most four values
 //! and halve, so its error stays at the level of a reordered direct sum (3e-7 of the output's
 //! range on random layers, against 1.4e-7 for the direct f32 sum); F(2x2, 5x5)'s coefficients
@@ -34,6 +34,8 @@
 use std::sync::Arc;
 
 use tract_nnef::internal::*;
+
+use crate::Winograd;
 
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv::ConvShape;
@@ -140,19 +142,6 @@ fn combine<'a>(dst: &mut [f32], coef: &[f32], src: impl Fn(usize) -> &'a [f32]) 
     if first {
         dst.fill(0.0);
     }
-}
-
-/// The kernel sides whose stride-1 convolutions run as [`WinogradConv`], from the environment
-/// variable `PRL_WINOGRAD`: `3x3` (F(2x2, 3x3)), `all` (and F(2x2, 5x5)); unset, `off` or
-/// anything else, none (the direct form, [`super::PackedConv`], for every layer: the default,
-/// which keeps the tracker's boxes within 1e-4 px of the official ones).
-pub fn kernel_sides() -> &'static [usize] {
-    static SIDES: std::sync::OnceLock<&'static [usize]> = std::sync::OnceLock::new();
-    SIDES.get_or_init(|| match std::env::var("PRL_WINOGRAD").map(|v| v.trim().to_ascii_lowercase()).as_deref() {
-        Ok("3x3") => &[3],
-        Ok("all") => &[3, 5],
-        _ => &[],
-    })
 }
 
 /// Whether a convolution of `shape` pays as F(2x2, r x r): a square kernel with a [`Form`] and
@@ -618,10 +607,13 @@ impl TypedOp for WinogradConv {
 }
 
 /// The [`WinogradConv`] for `node` of `model` if it is a float convolution of
-/// [`super::conv::plain_conv`]'s kind that [`suits`] F(2x2, r x r), of a side [`kernel_sides`] names.
-pub(crate) fn winograd(model: &TypedModel, node: &TypedNode) -> TractResult<Option<WinogradConv>> {
+/// [`super::conv::plain_conv`]'s kind that [`suits`] F(2x2, r x r), of a side `choice` names.
+pub(crate) fn winograd(model: &TypedModel, node: &TypedNode, choice: Winograd) -> TractResult<Option<WinogradConv>> {
+    if choice.is_off() {
+        return Ok(None);
+    }
     let Some((shape, weight, bias)) = super::conv::plain_conv(model, node)? else { return Ok(None) };
-    if !suits(&shape) || !kernel_sides().contains(&shape.kh) {
+    if !suits(&shape) || !choice.kernel_sides().contains(&shape.kh) {
         return Ok(None);
     }
     Ok(Some(WinogradConv::new(shape, weight, bias)?))
