@@ -46,8 +46,8 @@ pub use se::SqueezeExcite;
 pub use winograd::WinogradConv;
 pub use xcorr::DepthwiseXCorr;
 
-use tract_nnef::internal::*;
 use crate::Winograd;
+use tract_nnef::internal::*;
 
 /// Whether plans are loaded with the runtime's own operators: yes unless the environment
 /// variable `PRL_OPS` is `tract` (tract's operators alone: what the runtime's own are measured
@@ -123,61 +123,62 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
         let mut chain = vec![id];
         // Convolutions hold their weights and bias, and take in the activation after them:
         // they read only the data input.
-        let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) = if let Some(op) = winograd::winograd(model, node, winograd)? {
-            done.convolutions += 1;
-            with_tail(model, node, op, WinogradConv::fused, &mut chain)?
-        } else if let Some(op) = conv::packed(model, node)? {
-            done.convolutions += 1;
-            with_tail(model, node, op, PackedConv::fused, &mut chain)?
-        } else if let Some(op) = dwconv::depthwise(model, node)? {
-            done.depthwise += 1;
-            with_tail(model, node, op, DepthwiseConv::fused, &mut chain)?
-        } else if let Some(op) = dwconv_hwc::depthwise_hwc(model, node)? {
-            done.depthwise += 1;
-            (Box::new(op), tvec![node.inputs[0]])
-        } else if let Some(op) = qconv::packed_q(model, node)? {
-            done.int8_convolutions += 1;
-            (Box::new(op), tvec![node.inputs[0]])
-        } else if let Some(op) = pool::channel_max_pool(model, node)? {
-            done.pools += 1;
-            (Box::new(op), tvec![node.inputs[0]])
-        } else if let Some(op) = attention::attention_op(model, node)? {
-            done.attention += 1;
-            (op, node.inputs.iter().copied().collect())
-        } else if let Some((op, x)) = norm::layer_norm(model, node)? {
-            done.norms += 1;
-            (Box::new(op), tvec![x])
-        } else if let Some((op, x)) = matmul::const_matmul(model, node)? {
-            done.matmuls += 1;
-            (Box::new(op), tvec![x])
-        } else if let Some((op, x, c)) = pointwise::pointwise(model, node)? {
-            done.pointwise += 1;
-            chain = c;
-            (Box::new(op), tvec![x])
-        } else if let Some(op) = binary::broadcast_binary(model, node)? {
-            done.broadcasts += 1;
-            let shape = node.outputs[0].fact.shape.as_concrete().unwrap_or_default();
-            let op = match act::tail(model, node, None)?.and_then(|t| Some((op.fused(&t, shape)?, t.chain))) {
-                Some((fused, c)) => {
-                    chain = c;
-                    fused
-                }
-                None => op,
+        let (op, inputs): (Box<dyn TypedOp>, TVec<OutletId>) =
+            if let Some(op) = winograd::winograd(model, node, winograd)? {
+                done.convolutions += 1;
+                with_tail(model, node, op, WinogradConv::fused, &mut chain)?
+            } else if let Some(op) = conv::packed(model, node)? {
+                done.convolutions += 1;
+                with_tail(model, node, op, PackedConv::fused, &mut chain)?
+            } else if let Some(op) = dwconv::depthwise(model, node)? {
+                done.depthwise += 1;
+                with_tail(model, node, op, DepthwiseConv::fused, &mut chain)?
+            } else if let Some(op) = dwconv_hwc::depthwise_hwc(model, node)? {
+                done.depthwise += 1;
+                (Box::new(op), tvec![node.inputs[0]])
+            } else if let Some(op) = qconv::packed_q(model, node)? {
+                done.int8_convolutions += 1;
+                (Box::new(op), tvec![node.inputs[0]])
+            } else if let Some(op) = pool::channel_max_pool(model, node)? {
+                done.pools += 1;
+                (Box::new(op), tvec![node.inputs[0]])
+            } else if let Some(op) = attention::attention_op(model, node)? {
+                done.attention += 1;
+                (op, node.inputs.iter().copied().collect())
+            } else if let Some((op, x)) = norm::layer_norm(model, node)? {
+                done.norms += 1;
+                (Box::new(op), tvec![x])
+            } else if let Some((op, x)) = matmul::const_matmul(model, node)? {
+                done.matmuls += 1;
+                (Box::new(op), tvec![x])
+            } else if let Some((op, x, c)) = pointwise::pointwise(model, node)? {
+                done.pointwise += 1;
+                chain = c;
+                (Box::new(op), tvec![x])
+            } else if let Some(op) = binary::broadcast_binary(model, node)? {
+                done.broadcasts += 1;
+                let shape = node.outputs[0].fact.shape.as_concrete().unwrap_or_default();
+                let op = match act::tail(model, node, None)?.and_then(|t| Some((op.fused(&t, shape)?, t.chain))) {
+                    Some((fused, c)) => {
+                        chain = c;
+                        fused
+                    }
+                    None => op,
+                };
+                (Box::new(op), node.inputs.iter().copied().collect())
+            } else if let Some(op) = quant::quantize_u8(model, node)? {
+                done.quantizers += 1;
+                (Box::new(op), tvec![node.inputs[0]])
+            } else if let Some((op, x, c)) = se::squeeze_excite(model, node)? {
+                done.squeeze_excite += 1;
+                chain = c;
+                (Box::new(op), tvec![x])
+            } else if xcorr::matches(model, node)? {
+                done.correlations += 1;
+                (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())
+            } else {
+                continue;
             };
-            (Box::new(op), node.inputs.iter().copied().collect())
-        } else if let Some(op) = quant::quantize_u8(model, node)? {
-            done.quantizers += 1;
-            (Box::new(op), tvec![node.inputs[0]])
-        } else if let Some((op, x, c)) = se::squeeze_excite(model, node)? {
-            done.squeeze_excite += 1;
-            chain = c;
-            (Box::new(op), tvec![x])
-        } else if xcorr::matches(model, node)? {
-            done.correlations += 1;
-            (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())
-        } else {
-            continue;
-        };
         // The operator keeps the name of the first node it stands for (the convolution's, not
         // its activation's) and takes the place of the last.
         let last = *chain.last().expect("the node at least");

@@ -146,20 +146,30 @@ fn combine<'a>(dst: &mut [f32], coef: &[f32], src: impl Fn(usize) -> &'a [f32]) 
 
 /// Whether a convolution of `shape` pays as F(2x2, r x r): a square kernel with a [`Form`] and
 /// stride 1, enough channels for the transforms (one pass per input and per output channel)
-/// to be small beside the products, and at least [`MIN_TILES`] tiles.
+/// to be small beside the products, and products that are at most [`PRODUCTS_PAY`] of the
+/// direct form's multiply-adds as the kernels run them: `α²` per tile against `r²` per wide
+/// position of [`super::PackedConv`] (`(oh − 1)·Wp + ow`, the padded rows' dropped columns
+/// included), each rounded up to whole tiles of the kernel.
 pub(crate) fn suits(shape: &ConvShape) -> bool {
+    let Some(f) = form(shape.kh) else { return false };
+    if shape.kw != shape.kh || shape.stride != 1 || shape.ci < 32 || shape.co < 32 {
+        return false;
+    }
     let (oh, ow) = shape.out();
-    shape.kh == shape.kw
-        && form(shape.kh).is_some()
-        && shape.stride == 1
-        && shape.ci >= 32
-        && shape.co >= 32
-        && oh.div_ceil(2) * ow.div_ceil(2) >= MIN_TILES
+    let px = tile_positions();
+    let whole = |n: usize| n.div_ceil(px) * px;
+    let winograd = f.alpha * f.alpha * whole(oh.div_ceil(2) * ow.div_ceil(2));
+    let direct = f.r * f.r * whole((oh - 1) * shape.phase().1 + ow);
+    winograd * PRODUCTS_PAY.1 <= direct * PRODUCTS_PAY.0
 }
 
-/// Tiles below which the direct form stays: PRL-Track's heads (11 x 11 outputs, 36 tiles)
-/// took 1.2-1.6 ms a layer as F(2x2, 3x3) against 1.1-1.25 direct on an AMD EPYC (Zen 2).
-const MIN_TILES: usize = 64;
+/// The share of the direct form's multiply-adds under which F(2x2, r x r) pays (the
+/// transforms take the rest), from PRL-Track's layers on an AMD EPYC (Zen 2), one thread,
+/// with the transforms as they are now: the template's 3x3 layer 5 (6 x 6 outputs, 9 tiles in
+/// a kernel tile of 24) at 0.89 of the direct form's products was 1.03 -> 1.23 ms; its layer 3
+/// at 0.71 2.31 -> 2.06 ms, the heads' (11 x 11) at 0.59 1.07 -> 0.89, the template's layer 4
+/// at 0.44 2.79 -> 1.75.
+const PRODUCTS_PAY: (usize, usize) = (3, 4);
 
 /// A 3x3 or 5x5 stride-1 convolution with constant weights as Winograd's F(2x2, r x r) (module
 /// docs):
