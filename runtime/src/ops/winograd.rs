@@ -486,14 +486,12 @@ impl WinogradConv {
         let co_pad = blocks * ROWS;
         let (oh, ow) = self.shape.out();
         let (v, m) = buf.split_at_mut(xis * ci * ld + MAX_PX);
-        // On AVX2 the transformed input is packed `[ξ][run][c][24]` for
-        // `conv_kernel::packed_products_avx2`, so that each tile of the products reads its taps
-        // one after the other (through the direct kernel, rows `ld` apart, the products ran at
-        // 65 GFLOP/s where the direct convolution reaches 88 on an AMD EPYC); elsewhere
-        // `[ξ][c][ld]`, for the direct kernel.
-        let px = Self::packed_run();
         // Step 1: `v[ξ][c][tile]`, by row `a` of the tile's transform (the `α` blocks
-        // `ξ = α·a .. α·a + α − 1`) on the threads.
+        // `ξ = α·a .. α·a + α − 1`) on the threads. On AVX2 the transformed input is packed
+        // `[ξ][run][c][24]` for `conv_kernel::packed_products_avx2`, so that each tile of the
+        // products reads its taps one after the other (through the direct kernel, rows `ld`
+        // apart, the products ran at 65 GFLOP/s where the direct convolution reaches 88 on an
+        // AMD EPYC); elsewhere `[ξ][c][ld]`, for the direct kernel.
         par_chunks(&mut v[..xis * ci * ld], al * ci * ld, |a, part| self.input_part(src, a, part));
         v[xis * ci * ld..].fill(0.0);
         // Step 2: `m[ξ][o][tile] = Σ_c U_ξ[o][c]·v[ξ][c][tile]`, by block of `ROWS` output
@@ -506,7 +504,7 @@ impl WinogradConv {
             let weights = &self.weights[(xi * blocks + b) * ci * ROWS..][..ci * ROWS];
             let v = &v[xi * ci * ld..];
             #[cfg(target_arch = "x86_64")]
-            if let Some(px) = px {
+            if let Some(px) = Self::packed_run() {
                 // SAFETY: the CPU has AVX2 and FMA (the table's kernel); the taps are `24c`
                 // for `c < ci`; `v` holds `ld / 24` runs of `24·ci` values, `weights`
                 // `ROWS·ci`, `m` `ROWS` rows of `ld`.
