@@ -5,7 +5,8 @@
 use serde::{Deserialize, Serialize};
 
 /// Which stride-1 float convolutions run as [`crate::WinogradConv`] (those with 32 channels or
-/// more on each side and 64 tiles or more; the others stay direct).
+/// more on each side whose products come to at most 3/4 of the direct form's; the others stay
+/// direct).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub enum Winograd {
     /// None: the direct form ([`crate::PackedConv`]) for every layer. The default, which keeps

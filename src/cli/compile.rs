@@ -33,8 +33,8 @@ pub struct CompileArgs {
     #[arg(long, default_value = "models/prl-track/plan")]
     out: PathBuf,
     /// Convolutions to run as Winograd's fast algorithm (off, 3x3, all): the stride-1 3x3 ones
-    /// (`all`: and 5x5) of 32+ channels and 64+ tiles. Faster (docs/performance.md), and a
-    /// little further from the official tracker: PRL-Track's boxes within 2.5e-4 px of the
+    /// (`all`: and 5x5) of 32+ channels where they pay. Faster (docs/performance.md), and a
+    /// little further from the official tracker: PRL-Track's boxes within 2e-4 px of the
     /// official ones on the reference traces with `all`, against 1e-4 px with the direct form.
     /// Recorded in plan.json; `PRL_WINOGRAD` overrides it when a plan is loaded.
     #[arg(long, default_value = "off", value_name = "WHICH")]

@@ -28,7 +28,7 @@
 //! (up to 5/2, and 1/15 in `G`) give 1.5e-6; F(4x4, 3x3), 5e-6, is not used. On PRL-Track's
 //! reference checkpoint the network's stages come out no further from the official PyTorch
 //! ones with them than without, but the tracker's boxes on the official traces move from
-//! within 1e-4 px of the official ones to within 2.5e-4 px (docs/performance.md): a precision
+//! within 1e-4 px of the official ones to within 2e-4 px (docs/performance.md): a precision
 //! the user chooses, not a default.
 
 use std::sync::Arc;
