@@ -21,8 +21,8 @@
 //!    (AVX-512, AVX2 + FMA, NEON, portable) serves;
 //! 3. the output transform `Aᵀ M A`, the bias and the activation, written into the output.
 //!
-//! **Off unless asked for** ([`crate::Winograd`]: `prl compile --winograd`, `PRL_WINOGRAD`). The sums differ from the direct
-//! form's in their rounding. F(2x2, 3x3)'s transforms add and subtract at most four values
+//! **Off unless asked for** ([`crate::Winograd`]: `prl compile --winograd`, `PRL_WINOGRAD`).
+//! The sums differ from the direct form's in their rounding. F(2x2, 3x3)'s transforms add and subtract at most four values
 //! and halve, so its error stays at the level of a reordered direct sum (3e-7 of the output's
 //! range on random layers, against 1.4e-7 for the direct f32 sum); F(2x2, 5x5)'s coefficients
 //! (up to 5/2, and 1/15 in `G`) give 1.5e-6; F(4x4, 3x3), 5e-6, is not used. On PRL-Track's
@@ -335,9 +335,9 @@ impl WinogradConv {
     }
 
     /// `act(bias + Aᵀ M A)` of channels `o0 .. o0 + g` (`out` holds their `[oh, ow]` planes)
-    /// from the products `m` (`[ξ][o][ld]`, `co_pad` channels). The transform runs on blocks of
-    /// `g·ld` values (every position of the group's channels), so its vectors are long whatever
-    /// the map's width.
+    /// from the products `m` (`[ξ][o][ld]`, `co_pad` channels). The transform runs on the
+    /// `g·ld` values of the group's channels (every position), by pieces of [`OUT_PIECE`], so
+    /// its vectors are long whatever the map's width.
     #[inline(always)]
     fn transform_output(
         &self,
@@ -535,8 +535,9 @@ const IN_GROUP: usize = 16;
 const OUT_GROUP: usize = 16;
 
 /// Positions per pass of the output transform: its `2·α` rows of `Aᵀ m` (48 KiB for
-/// F(2x2, 5x5)) stay in the first-level cache. Over a whole group at once they took 845 KiB
-/// on PRL-Track's layer 2, and the output transform 6 ms of the layer's 38 on an AMD EPYC.
+/// F(2x2, 5x5)) stay in the first-level cache, where over a whole group at once they took
+/// 845 KiB on PRL-Track's layer 2. (No faster by itself on an AMD EPYC: the transform is
+/// bound by reading the products, 40 MB on that layer, from memory.)
 const OUT_PIECE: usize = 1024;
 
 /// A task's buffers for the transforms.
@@ -550,6 +551,8 @@ struct Scratch {
     row: Vec<f32>,
     /// That row's columns, tile by tile ([`WinogradConv::transform_input`]).
     cols: Vec<f32>,
+    /// A group of channels' transformed rows before they are packed in runs
+    /// ([`WinogradConv::input_part`]).
     tmp: Vec<f32>,
 }
 
