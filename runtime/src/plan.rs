@@ -157,7 +157,11 @@ impl Plan {
         manifest.check().map_err(|msg| bad(&mpath, msg))?;
         let knobs = manifest.optimizer_knobs.iter().map(|(k, v)| (k.as_str(), v.as_str()));
         let knobs = KnobScope::new(knobs).map_err(|e| bad(&mpath, format!("optimizer_knobs: {e}")))?;
-        let winograd = Winograd::from_env().unwrap_or(manifest.winograd);
+        // (None with tract's operators alone: `WinogradConv` is one of the runtime's.)
+        let winograd = match crate::ops::own_operators() {
+            true => Winograd::from_env().unwrap_or(manifest.winograd),
+            false => Winograd::Off,
+        };
         // The two graphs load and optimise independently: side by side.
         let (template, search) = std::thread::scope(|s| {
             let t = s.spawn(|| load_graph(&dir, &manifest.template, &knobs, winograd));
@@ -174,7 +178,8 @@ impl Plan {
     }
 
     /// The convolutions that run as Winograd's: the plan's choice (`plan.json`'s `winograd`),
-    /// or `PRL_WINOGRAD`'s where it is set ([`Winograd::from_env`]).
+    /// or `PRL_WINOGRAD`'s where it is set ([`Winograd::from_env`]); none with tract's
+    /// operators alone (`PRL_OPS=tract`).
     pub fn winograd(&self) -> Winograd {
         self.winograd
     }

@@ -315,7 +315,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         eprintln!("warning: {w}");
     }
     let winograd = tracker.plan().winograd();
-    let forced = prl_runtime::Winograd::from_env().is_some();
+    let forced = prl_runtime::own_operators() && prl_runtime::Winograd::from_env().is_some();
     if !winograd.is_off() || forced {
         let from = if forced { "PRL_WINOGRAD" } else { "the plan's choice" };
         println!("convolutions as Winograd's: {} ({from})", winograd.name());
