@@ -421,46 +421,48 @@ impl WinogradConv {
         let (ci, hw) = (self.shape.ci, self.shape.h * self.shape.w);
         let (al, ld, t) = (self.form.alpha, self.stride(), self.tile_count());
         let packed = Self::packed_run();
-        let mut sc = Scratch::default();
-        for c0 in (0..ci).step_by(IN_GROUP) {
-            let g = IN_GROUP.min(ci - c0);
-            sc.tmp.resize(g * al * ld, 0.0);
-            for c in c0..c0 + g {
-                self.transform_input(&src[c * hw..][..hw], a, &mut sc);
-                // · B: column j of every tile's row a is block j of `cols`.
-                let cols = &sc.cols;
-                let column = |j: usize| &cols[j * t..][..t];
-                for b in 0..al {
-                    let row = match packed {
-                        None => &mut part[(b * ci + c) * ld..][..ld],
-                        Some(_) => &mut sc.tmp[((c - c0) * al + b) * ld..][..ld],
-                    };
-                    combine(&mut row[..t], &self.form.bt[b * al..][..al], column);
-                    row[t..].fill(0.0);
+        Scratch::with(|sc| {
+            for c0 in (0..ci).step_by(IN_GROUP) {
+                let g = IN_GROUP.min(ci - c0);
+                sc.tmp.resize(g * al * ld, 0.0);
+                for c in c0..c0 + g {
+                    self.transform_input(&src[c * hw..][..hw], a, sc);
+                    // · B: column j of every tile's row a is block j of `cols`.
+                    let cols = &sc.cols;
+                    let column = |j: usize| &cols[j * t..][..t];
+                    for b in 0..al {
+                        let row = match packed {
+                            None => &mut part[(b * ci + c) * ld..][..ld],
+                            Some(_) => &mut sc.tmp[((c - c0) * al + b) * ld..][..ld],
+                        };
+                        combine(&mut row[..t], &self.form.bt[b * al..][..al], column);
+                        row[t..].fill(0.0);
+                    }
                 }
-            }
-            let Some(px) = packed else { continue };
-            for b in 0..al {
-                for r in 0..ld / px {
-                    let dst = &mut part[b * ci * ld + (r * ci + c0) * px..][..g * px];
-                    for (k, run) in dst.chunks_exact_mut(px).enumerate() {
-                        run.copy_from_slice(&sc.tmp[(k * al + b) * ld + r * px..][..px]);
+                let Some(px) = packed else { continue };
+                for b in 0..al {
+                    for r in 0..ld / px {
+                        let dst = &mut part[b * ci * ld + (r * ci + c0) * px..][..g * px];
+                        for (k, run) in dst.chunks_exact_mut(px).enumerate() {
+                            run.copy_from_slice(&sc.tmp[(k * al + b) * ld + r * px..][..px]);
+                        }
                     }
                 }
             }
-        }
+        })
     }
 
     /// Step 3 of [`Self::run`] for output channels `o0 .. o0 + g` ([`Self::transform_output`]),
     /// compiled for 8 lanes on AVX2 as [`Self::input_part`].
     fn output_group(&self, m: &[f32], lds: (usize, usize), group: (usize, usize), out: &mut [f32]) {
-        let mut sc = Scratch::default();
-        #[cfg(target_arch = "x86_64")]
-        if crate::isa::isa().avx2_fma {
-            // SAFETY: the CPU has AVX2 and FMA.
-            return unsafe { self.output_group_avx2(m, lds, group, out, &mut sc) };
-        }
-        self.transform_output(m, lds, group, out, &mut sc)
+        Scratch::with(|sc| {
+            #[cfg(target_arch = "x86_64")]
+            if crate::isa::isa().avx2_fma {
+                // SAFETY: the CPU has AVX2 and FMA.
+                return unsafe { self.output_group_avx2(m, lds, group, out, sc) };
+            }
+            self.transform_output(m, lds, group, out, sc)
+        })
     }
 
     #[cfg(target_arch = "x86_64")]
@@ -540,7 +542,8 @@ const OUT_GROUP: usize = 16;
 /// bound by reading the products, 40 MB on that layer, from memory.)
 const OUT_PIECE: usize = 1024;
 
-/// A task's buffers for the transforms.
+/// A task's buffers for the transforms: each thread's own, kept from frame to frame
+/// ([`Scratch::with`]); every value is written before it is read.
 #[derive(Default)]
 struct Scratch {
     /// The input transform's padded plane (its even rows, then its odd rows); the output
@@ -554,6 +557,22 @@ struct Scratch {
     /// A group of channels' transformed rows before they are packed in runs
     /// ([`WinogradConv::input_part`]).
     tmp: Vec<f32>,
+}
+
+impl Scratch {
+    /// `f` on this thread's buffers (the group buffer alone is 16·α·ld values, 0.4 MB on
+    /// PRL-Track's layer 2: not allocated again for every task of every frame).
+    fn with<R>(f: impl FnOnce(&mut Scratch) -> R) -> R {
+        use std::cell::RefCell;
+        thread_local! {
+            static SCRATCH: RefCell<Scratch> = RefCell::default();
+        }
+        SCRATCH.with(|s| match s.try_borrow_mut() {
+            Ok(mut s) => f(&mut s),
+            // In use further up this thread's stack (not the case today): buffers of its own.
+            Err(_) => f(&mut Scratch::default()),
+        })
+    }
 }
 
 impl Op for WinogradConv {
