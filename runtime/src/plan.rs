@@ -60,6 +60,8 @@ pub struct Plan {
     manifest: PlanManifest,
     /// The convolutions that run as Winograd's: the manifest's choice, or `PRL_WINOGRAD`'s.
     winograd: Winograd,
+    /// Whether `PRL_WINOGRAD` made that choice rather than the manifest.
+    winograd_from_env: bool,
     template: Runnable,
     search: Runnable,
 }
@@ -158,9 +160,10 @@ impl Plan {
         let knobs = manifest.optimizer_knobs.iter().map(|(k, v)| (k.as_str(), v.as_str()));
         let knobs = KnobScope::new(knobs).map_err(|e| bad(&mpath, format!("optimizer_knobs: {e}")))?;
         // (None with tract's operators alone: `WinogradConv` is one of the runtime's.)
-        let winograd = match crate::ops::own_operators() {
-            true => Winograd::from_env().unwrap_or(manifest.winograd),
-            false => Winograd::Off,
+        let (winograd, winograd_from_env) = match (crate::ops::own_operators(), Winograd::from_env()) {
+            (true, Some(forced)) => (forced, true),
+            (true, None) => (manifest.winograd, false),
+            (false, _) => (Winograd::Off, false),
         };
         // The two graphs load and optimise independently: side by side.
         let (template, search) = std::thread::scope(|s| {
@@ -169,7 +172,7 @@ impl Plan {
             (t.join().expect("template loader panicked"), search)
         });
         let (template, search) = (template?, search?);
-        Ok(Plan { dir, manifest, winograd, template, search })
+        Ok(Plan { dir, manifest, winograd, winograd_from_env, template, search })
     }
 
     /// The plan's manifest.
@@ -182,6 +185,11 @@ impl Plan {
     /// operators alone (`PRL_OPS=tract`).
     pub fn winograd(&self) -> Winograd {
         self.winograd
+    }
+
+    /// Whether [`Self::winograd`] is `PRL_WINOGRAD`'s choice rather than the plan's.
+    pub fn winograd_from_env(&self) -> bool {
+        self.winograd_from_env
     }
 
     /// The directory the plan was loaded from.

@@ -314,8 +314,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     if let Some(w) = prl_runtime::winograd_warning() {
         eprintln!("warning: {w}");
     }
-    let winograd = tracker.plan().winograd();
-    let forced = prl_runtime::own_operators() && prl_runtime::Winograd::from_env().is_some();
+    let (winograd, forced) = (tracker.plan().winograd(), tracker.plan().winograd_from_env());
     if !winograd.is_off() || forced {
         let from = if forced { "PRL_WINOGRAD" } else { "the plan's choice" };
         println!("convolutions as Winograd's: {} ({from})", winograd.name());

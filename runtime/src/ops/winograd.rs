@@ -187,6 +187,10 @@ pub struct WinogradConv {
     /// `U_ξ` for each of the `α²` positions `ξ`, packed as the direct kernel takes them:
     /// `[ξ][block][c][ROWS]`.
     weights: Arc<Vec<f32>>,
+    /// Tiles per run where the transformed input is packed in runs ([`Self::packed_run`]),
+    /// chosen once when the operator is made: the products' kernel and the transforms'
+    /// layout read this one value.
+    packed: Option<usize>,
     bias: Arc<Vec<f32>>,
     act: Activation,
     /// The output's shape where the fused nodes end in another shape than `[n, co, oh, ow]`.
@@ -239,26 +243,28 @@ impl WinogradConv {
         let (oh, ow) = shape.out();
         let tiles = (oh.div_ceil(2), ow.div_ceil(2));
         let blocks = co.div_ceil(ROWS);
-        let mut packed = vec![0f32; xis * blocks * ci * ROWS];
+        let mut weights = vec![0f32; xis * blocks * ci * ROWS];
         let mut u = vec![0f32; xis];
         for o in 0..co {
             for c in 0..ci {
                 transform_kernel(f, &weight[(o * ci + c) * r * r..][..r * r], &mut u);
                 for (xi, &v) in u.iter().enumerate() {
-                    packed[((xi * blocks + o / ROWS) * ci + c) * ROWS + o % ROWS] = v;
+                    weights[((xi * blocks + o / ROWS) * ci + c) * ROWS + o % ROWS] = v;
                 }
             }
         }
         let bias = (0..co).map(|o| if bias.len() == 1 { bias[0] } else { bias[o] }).collect();
         let ld = (tiles.0 * tiles.1).div_ceil(tile_positions()) * tile_positions();
-        let step = Self::packed_run().unwrap_or(ld);
+        let packed = Self::packed_run();
+        let step = packed.unwrap_or(ld);
         let layout = Layout { taps: (0..ci).map(|c| c * step).collect(), wp: ld, oh: 1, ow: ld };
         Ok(WinogradConv {
             shape,
             form: f,
             tiles,
             layout: Arc::new(layout),
-            weights: Arc::new(packed),
+            weights: Arc::new(weights),
+            packed,
             bias: Arc::new(bias),
             act: Activation::NONE,
             reshape: None,
@@ -420,7 +426,7 @@ impl WinogradConv {
     fn input_part_inline(&self, src: &[f32], a: usize, part: &mut [f32]) {
         let (ci, hw) = (self.shape.ci, self.shape.h * self.shape.w);
         let (al, ld, t) = (self.form.alpha, self.stride(), self.tile_count());
-        let packed = Self::packed_run();
+        let packed = self.packed;
         Scratch::with(|sc| {
             for c0 in (0..ci).step_by(IN_GROUP) {
                 let g = IN_GROUP.min(ci - c0);
@@ -506,7 +512,7 @@ impl WinogradConv {
             let weights = &self.weights[(xi * blocks + b) * ci * ROWS..][..ci * ROWS];
             let v = &v[xi * ci * ld..];
             #[cfg(target_arch = "x86_64")]
-            if let Some(px) = Self::packed_run() {
+            if let Some(px) = self.packed {
                 // SAFETY: the CPU has AVX2 and FMA (the table's kernel); the taps are `24c`
                 // for `c < ci`; `v` holds `ld / 24` runs of `24·ci` values, `weights`
                 // `ROWS·ci`, `m` `ROWS` rows of `ld`.
