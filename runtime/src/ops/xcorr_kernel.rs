@@ -72,28 +72,49 @@ pub(crate) fn correlate_channel(
 
 /// NEON: strips of 16 columns (four 4-lane registers), four output rows at a time: 16
 /// accumulators and four input loads per kernel tap, so each load serves up to four kernel
-/// rows. Fused multiply-adds in the generic order: the same bits as the AVX paths.
+/// rows. Where all four rows have a kernel row for an input row (all but the first and last
+/// three input rows of a block), their four taps are one vector (`taps`, made once per
+/// channel) and each multiply-add takes its tap by lane: no scalar loads, no branches
+/// (`FMLA v.4s, v.4s, v.s[q]`). Fused multiply-adds in the generic order: the same bits as
+/// the AVX paths.
 #[cfg(target_arch = "aarch64")]
 #[target_feature(enable = "neon")]
 unsafe fn strips_neon(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
     const R: usize = 4;
+    let taps = row_taps::<R>(g, kernel);
     walk(g, LANES, R, |rows, y, x0, cols| {
         let a = (g, padded, kernel, bias, &mut *out, y, x0, cols);
         // SAFETY: NEON is enabled here; the loads stay in `padded` (rows padded to whole
         // 16-column blocks), the stores in `out` (`cols` values a row).
         unsafe {
             match (rows, cols.div_ceil(4)) {
-                (R, 1) => rows_neon::<R, 1>(a),
-                (R, 2) => rows_neon::<R, 2>(a),
-                (R, 3) => rows_neon::<R, 3>(a),
-                (R, _) => rows_neon::<R, 4>(a),
-                (_, 1) => rows_neon::<1, 1>(a),
-                (_, 2) => rows_neon::<1, 2>(a),
-                (_, 3) => rows_neon::<1, 3>(a),
-                _ => rows_neon::<1, 4>(a),
+                (R, 1) => rows_neon::<R, 1>(a, &taps),
+                (R, 2) => rows_neon::<R, 2>(a, &taps),
+                (R, 3) => rows_neon::<R, 3>(a, &taps),
+                (R, _) => rows_neon::<R, 4>(a, &taps),
+                (_, 1) => rows_neon::<1, 1>(a, &taps),
+                (_, 2) => rows_neon::<1, 2>(a, &taps),
+                (_, 3) => rows_neon::<1, 3>(a, &taps),
+                _ => rows_neon::<1, 4>(a, &taps),
             }
         }
     });
+}
+
+/// The taps `R` consecutive output rows take from input row `r` (of a block) at kernel column
+/// `j`: `taps[(r·kw + j)·R + q] = kernel[(r − q)·kw + j]`, for the input rows where every `q`
+/// has one (`R − 1 <= r < kh`; the others are left 0 and not read).
+#[cfg(target_arch = "aarch64")]
+fn row_taps<const R: usize>(g: Geometry, kernel: &[f32]) -> Vec<f32> {
+    let mut taps = vec![0f32; (g.kh + R - 1) * g.kw * R];
+    for r in R - 1..g.kh {
+        for j in 0..g.kw {
+            for q in 0..R {
+                taps[(r * g.kw + j) * R + q] = kernel[(r - q) * g.kw + j];
+            }
+        }
+    }
+    taps
 }
 
 /// The strips of an output: columns `max_cols` at a time, and in each, rows `group` at a time
@@ -123,15 +144,34 @@ type Block<'a> = (Geometry, &'a [f32], &'a [f32], f32, &'a mut [f32], usize, usi
 /// Output rows `y..y+R`, columns `x0..x0+cols` (`B` registers of 4), as [`rows_avx512`].
 #[cfg(target_arch = "aarch64")]
 #[target_feature(enable = "neon")]
-unsafe fn rows_neon<const R: usize, const B: usize>((g, padded, kernel, bias, out, y, x0, cols): Block) {
+unsafe fn rows_neon<const R: usize, const B: usize>((g, padded, kernel, bias, out, y, x0, cols): Block, taps: &[f32]) {
     use std::arch::aarch64::*;
     let (wp, ow) = (g.padded_w(), g.out_w());
     assert!((y + R + g.kh - 1) * wp <= padded.len() && x0 + 4 * B + g.kw - 1 <= wp && kernel.len() == g.kh * g.kw);
     assert!(cols <= 4 * B && (y + R - 1) * ow + x0 + cols <= out.len());
+    assert!(R != 4 || taps.len() == (g.kh + R - 1) * g.kw * R);
     let mut acc = [[vdupq_n_f32(bias); B]; R];
     for r in 0..g.kh + R - 1 {
         // SAFETY: row `y + r` lies in `padded` (asserted above).
         let row = unsafe { padded.as_ptr().add((y + r) * wp + x0) };
+        if R == 4 && r + 1 >= R && r < g.kh {
+            for j in 0..g.kw {
+                // SAFETY: within the row, and `taps` holds `R` values for `(r, j)` (asserted).
+                let (v, t): ([float32x4_t; B], _) = unsafe {
+                    (
+                        std::array::from_fn(|b| vld1q_f32(row.add(j + 4 * b))),
+                        vld1q_f32(taps.as_ptr().add((r * g.kw + j) * R)),
+                    )
+                };
+                for b in 0..B {
+                    acc[0][b] = vfmaq_laneq_f32::<0>(acc[0][b], v[b], t);
+                    acc[1][b] = vfmaq_laneq_f32::<1>(acc[1][b], v[b], t);
+                    acc[2][b] = vfmaq_laneq_f32::<2>(acc[2][b], v[b], t);
+                    acc[3][b] = vfmaq_laneq_f32::<3>(acc[3][b], v[b], t);
+                }
+            }
+            continue;
+        }
         for j in 0..g.kw {
             // SAFETY: within the row (asserted above).
             let v: [float32x4_t; B] = std::array::from_fn(|b| unsafe { vld1q_f32(row.add(j + 4 * b)) });
