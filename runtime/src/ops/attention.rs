@@ -132,8 +132,9 @@ fn gemm(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) 
         // SAFETY: as above.
         #[cfg(target_arch = "x86_64")]
         F32Kernel::Avx2Fma => unsafe { gemm_fma(dst, n, a, kl, b, ldb) },
-        // NEON: the 6 x 16 tile is 24 of the 32 registers, fused.
-        F32Kernel::Neon => gemm_generic::<true>(dst, n, a, kl, b, ldb),
+        // SAFETY: NEON is part of the aarch64 baseline (and the probe found it).
+        #[cfg(target_arch = "aarch64")]
+        F32Kernel::Neon => unsafe { gemm_neon(dst, n, a, kl, b, ldb) },
         _ => gemm_generic::<false>(dst, n, a, kl, b, ldb),
     }
 }
@@ -150,6 +151,51 @@ unsafe fn gemm_fma(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], l
     gemm_generic::<true>(dst, n, a, kl, b, ldb)
 }
 
+/// NEON: the 6 x 16 tile in registers (24 accumulators, four vectors of `b` and each value of
+/// `a` taken by element: `FMLA v.4s, v.4s, v.s[0]`), fused, in the order of
+/// [`gemm_generic`]: the same bits. The portable tile compiled for NEON kept only part of its
+/// accumulators in registers and stored the rest to the stack on every `k` (modelled on a
+/// Cortex-A78 class core: 1.9 multiply-adds a cycle of 8).
+#[cfg(target_arch = "aarch64")]
+#[target_feature(enable = "neon")]
+unsafe fn gemm_neon(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
+    use std::arch::aarch64::*;
+    let m = a.len() / kl;
+    assert!(b.len() >= kl * ldb && n <= ldb && ldb.is_multiple_of(NR), "b holds kl rows of whole vectors");
+    assert!(dst.len() >= m * n && a.len() == m * kl);
+    for i in (0..m).step_by(MR) {
+        let mr = MR.min(m - i);
+        // Rows past the last are computed again from the last (and not stored).
+        let rows: [&[f32]; MR] = std::array::from_fn(|r| &a[(i + r.min(mr - 1)) * kl..][..kl]);
+        for j0 in (0..n).step_by(NR) {
+            let mut acc = [[vdupq_n_f32(0.0); NR / 4]; MR];
+            for k in 0..kl {
+                // SAFETY: row k of `b` holds `ldb >= j0 + 16` values (asserted); `k < kl`, the
+                // length of every row of `a`.
+                unsafe {
+                    let bk = b.as_ptr().add(k * ldb + j0);
+                    let bv: [float32x4_t; NR / 4] = std::array::from_fn(|q| vld1q_f32(bk.add(4 * q)));
+                    for (acc, row) in acc.iter_mut().zip(&rows) {
+                        let c = *row.get_unchecked(k);
+                        for (x, &y) in acc.iter_mut().zip(&bv) {
+                            *x = vfmaq_n_f32(*x, y, c);
+                        }
+                    }
+                }
+            }
+            let w = NR.min(n - j0);
+            for (r, acc) in acc.iter().enumerate().take(mr) {
+                let mut lanes = [0f32; NR];
+                for (q, v) in acc.iter().enumerate() {
+                    // SAFETY: four floats into a local array of 16.
+                    unsafe { vst1q_f32(lanes.as_mut_ptr().add(4 * q), *v) };
+                }
+                dst[(i + r) * n + j0..][..w].copy_from_slice(&lanes[..w]);
+            }
+        }
+    }
+}
+
 #[inline(always)]
 fn gemm_generic<const FUSED: bool>(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
     let m = a.len() / kl;
@@ -161,9 +207,16 @@ fn gemm_generic<const FUSED: bool>(dst: &mut [f32], n: usize, a: &[f32], kl: usi
         for j0 in (0..n).step_by(NR) {
             let mut acc = [[0f32; NR]; MR];
             for k in 0..kl {
-                let brow: &[f32; NR] = b[k * ldb + j0..][..NR].try_into().expect("16 values");
-                for (acc, row) in acc.iter_mut().zip(&rows) {
-                    let c = row[k];
+                // SAFETY: row k of `b` holds `ldb >= j0 + 16` values (asserted); `k < kl`, the
+                // length of every row of `a`. (With bounds checks in this loop the compiler kept
+                // the accumulators in memory, storing all of them on every `k`.)
+                let (brow, cs): (&[f32; NR], [f32; MR]) = unsafe {
+                    (
+                        &*b.as_ptr().add(k * ldb + j0).cast::<[f32; NR]>(),
+                        std::array::from_fn(|r| *rows[r].get_unchecked(k)),
+                    )
+                };
+                for (acc, c) in acc.iter_mut().zip(cs) {
                     for (x, &y) in acc.iter_mut().zip(brow) {
                         *x = if FUSED { c.mul_add(y, *x) } else { c * y + *x };
                     }
@@ -394,6 +447,29 @@ mod tests {
         }
         assert_eq!(mix.shape(), &[m, heads, p]);
         close(mix.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap(), &want);
+    }
+
+    /// The dispatched product (the SIMD path the machine runs) gives the portable tile's bits.
+    #[test]
+    fn gemm_paths_equal_the_portable_tile() {
+        let fused = crate::isa::f32_kernel() != F32Kernel::Portable;
+        for (m, n, kl) in [(1usize, 1usize, 1usize), (6, 16, 8), (7, 17, 33), (121, 121, 64), (13, 40, 5)] {
+            let ldb = n.div_ceil(NR) * NR;
+            let a = values(m * kl, 4);
+            let mut b = values(kl * ldb, 5);
+            for (k, v) in b.iter_mut().enumerate() {
+                if k % ldb >= n {
+                    *v = 0.0;
+                }
+            }
+            let (mut got, mut want) = (vec![f32::NAN; m * n], vec![f32::NAN; m * n]);
+            gemm(&mut got, n, &a, kl, &b, ldb);
+            match fused {
+                true => gemm_generic::<true>(&mut want, n, &a, kl, &b, ldb),
+                false => gemm_generic::<false>(&mut want, n, &a, kl, &b, ldb),
+            }
+            assert!(got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()), "{m}x{n}x{kl}");
+        }
     }
 
     #[test]
