@@ -3,20 +3,26 @@
 # 2.0 GHz), made on an x86 machine, for NanoTrack v2 and PRL-Track, fp32 and int8, with the
 # runtime's operators and with tract's alone (PRL_OPS=tract):
 #
-#   bash scripts/orin-estimate.sh          # about an hour on 2 cores (PRL-Track under qemu)
+#   bash scripts/orin-estimate.sh          # about 30 minutes on 2 cores (PRL-Track under qemu)
 #   NANOTRACK_ONLY=1 bash scripts/orin-estimate.sh   # a few minutes
 #
 # 1. Instructions per step: the aarch64 `prl bench` (scripts/aarch64.sh build) runs under
 #    `qemu-aarch64 -cpu cortex-a76` with an instruction-counting plugin
-#    (scripts/qemu-insn-count.c), once with 1 and once with 3 timed runs, on one thread; the
-#    difference over 2 is one tracking step plus one template run (bench times both per run),
-#    so the estimate is an upper bound on the step.
+#    (scripts/qemu-insn-count.c), once with 1 and once with 3 timed tracking steps and one
+#    template run each (`--template-runs 1`), on one thread: the difference over 2 is one
+#    tracking step (crop + resize, search network, post-processing).
 # 2. Cycles: the hot blocks through llvm-mca -mcpu=neoverse-n1 (a Cortex-A76 derivative and the
 #    closest model LLVM has to the A78: LLVM's cortex-a78 uses the A57 model), 4-wide dispatch
 #    (scripts/orin_estimate.py: L1 hits and predicted branches assumed).
 # 3. Threads: the serial fraction s from this x86 machine's 1- and 2-thread search times
-#    (T2 = T1·(s + (1-s)/2)), applied to 8 cores: T8 = T1·(s + (1-s)/8) (Amdahl; on the board
-#    memory bandwidth and the cluster's shared L3 may do worse).
+#    (T2 = T1·(s + (1-s)/2); the median of three alternations), applied to 8 cores:
+#    T8 = T1·(s + (1-s)/8) (Amdahl; on the board memory bandwidth and the cluster's shared L3
+#    may do worse). These timings are taken first,
+#    for every plan, before the emulated counts load both cores.
+#
+# PRL-Track's fp32 plan is counted twice: direct convolutions (the default) and `prl compile
+# --winograd all` (prl-fp32-wg; tract's operators alone have no Winograd, so that row is the
+# runtime's only).
 #
 # Needs what scripts/aarch64.sh installs, plus Debian's llvm-19 (llvm-mca) and gcc; installs
 # them when missing. Writes target/orin-estimate/ and prints one table.
@@ -48,29 +54,46 @@ if [ ! -d "$W/nanotrack-int8" ]; then
         --budget 4 --min-macs 1000000 --min-out-channels 16 --out "$W/nanotrack-int8" >/dev/null
 fi
 if [ -z "${NANOTRACK_ONLY:-}" ]; then
-    plans+=(prl-fp32 prl-int8)
+    plans+=(prl-fp32 prl-fp32-wg prl-int8)
     if [ ! -d "$W/prl-int8" ]; then
         "$HOST" compile --checkpoint "$SHARED/fixtures/prl-golden-v1/checkpoint.pth" --out "$W/prl-fp32"
         "$HOST" quantize --plan "$W/prl-fp32" --calib "$SEQ" --frames-per-seq 16 --out "$W/prl-int8" >/dev/null
+    fi
+    if [ ! -d "$W/prl-fp32-wg" ]; then
+        "$HOST" compile --checkpoint "$SHARED/fixtures/prl-golden-v1/checkpoint.pth" --winograd all \
+            --out "$W/prl-fp32-wg"
     fi
 fi
 
 count() { # plan ops runs
     env PRL_OPS="$2" qemu-aarch64 -L /usr/aarch64-linux-gnu -cpu cortex-a76 -plugin "$W/insn-count.so" \
-        -d plugin -D "$W/$1-$2-$3.txt" "$ARM" bench --plan "$W/$1" --sequence "$SEQ" --runs "$3" --top 0 \
-        --threads 1 >/dev/null
+        -d plugin -D "$W/$1-$2-$3.txt" "$ARM" bench --plan "$W/$1" --sequence "$SEQ" --runs "$3" \
+        --template-runs 1 --top 0 --threads 1 >/dev/null
 }
+
+# The serial fractions, from this machine (the runtime's operators), before anything else runs:
+# one- and two-thread runs alternated three times, the median of the three fractions (this
+# machine's second core is shared with other VMs: single pairs gave 0.07 to 0.49 for one plan).
+declare -A serial
+for p in "${plans[@]}"; do
+    for i in 1 2 3; do
+        for t in 1 2; do
+            "$HOST" bench --plan "$W/$p" --sequence "$SEQ" --runs 15 --top 0 --threads $t --json "$W/$p-t$t-$i.json" >/dev/null
+        done
+    done
+    serial[$p]=$(python3 -c "
+import json, statistics
+def search(f): return next(x['median_ms'] for x in json.load(open(f))['stages'] if x['stage'] == 'search network')
+s = [2 * search('$W/$p-t2-%d.json' % i) / search('$W/$p-t1-%d.json' % i) - 1 for i in (1, 2, 3)]
+print(min(1.0, max(0.0, statistics.median(s))))")
+done
 
 printf '%-16s %-8s %12s %8s %10s %6s %10s %8s\n' plan ops "M insn/step" "IPC" "ms 1 core" "s" "ms 8 core" "FPS"
 for p in "${plans[@]}"; do
-    # The serial fraction, from this machine (the runtime's operators).
-    "$HOST" bench --plan "$W/$p" --sequence "$SEQ" --runs 20 --top 0 --threads 1 --json "$W/$p-t1.json" >/dev/null
-    "$HOST" bench --plan "$W/$p" --sequence "$SEQ" --runs 20 --top 0 --threads 2 --json "$W/$p-t2.json" >/dev/null
-    s=$(python3 -c "
-import json
-t = [next(x['median_ms'] for x in json.load(open('$W/$p-t%d.json' % n))['stages'] if x['stage'] == 'search network') for n in (1, 2)]
-print(min(1.0, max(0.0, 2 * t[1] / t[0] - 1)))")
-    for ops in runtime tract; do
+    s=${serial[$p]}
+    opss=(runtime tract)
+    [ "$p" = prl-fp32-wg ] && opss=(runtime)
+    for ops in "${opss[@]}"; do
         # Two runs side by side (one emulated thread each).
         count "$p" "$ops" 1 &
         count "$p" "$ops" 3

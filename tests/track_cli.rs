@@ -306,6 +306,8 @@ fn bench_reports_stages_and_operators() {
         "--plan",
         plan.to_str().unwrap(),
         "--runs",
+        "2",
+        "--template-runs",
         "1",
         "--sequence",
         seq.to_str().unwrap(),
@@ -330,6 +332,10 @@ fn bench_reports_stages_and_operators() {
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     let stages: Vec<&str> = report["stages"].as_array().unwrap().iter().map(|s| s["stage"].as_str().unwrap()).collect();
     assert_eq!(stages, ["template network", "crop + resize", "search network", "post-processing", "tracking step"]);
+    // Two timed tracking steps, one timed template run (`--template-runs`).
+    let samples: Vec<usize> =
+        report["stages"].as_array().unwrap().iter().map(|s| s["samples_ms"].as_array().unwrap().len()).collect();
+    assert_eq!(samples, [1, 2, 2, 2, 2]);
     let ops = report["top_ops"].as_array().unwrap();
     assert_eq!(ops.len(), 12);
     assert!(ops.iter().any(|o| o["gflops"].as_f64().unwrap() > 0.0));

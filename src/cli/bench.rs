@@ -25,6 +25,10 @@ pub struct BenchArgs {
     /// Timed runs per stage.
     #[arg(long, default_value_t = 20)]
     runs: usize,
+    /// Timed runs of the template network, if not --runs (`scripts/orin-estimate.sh` counts
+    /// instructions of runs that differ in tracking steps only).
+    #[arg(long, value_name = "N")]
+    template_runs: Option<usize>,
     /// A sequence folder whose first frame and box are used (default: UAV123 building4 if
     /// present, else a generated 1280x720 frame).
     #[arg(long, value_name = "DIR")]
@@ -205,6 +209,8 @@ fn input(seq: Option<&Path>) -> anyhow::Result<(Frame, BBox, String)> {
 
 pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.runs >= 1, "--runs must be at least 1");
+    let template_runs = a.template_runs.unwrap_or(a.runs);
+    anyhow::ensure!(template_runs >= 1, "--template-runs must be at least 1");
     anyhow::ensure!((1..=64).contains(&a.targets), "--targets must be 1 to 64");
     let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     set_threads(threads);
@@ -219,8 +225,8 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config.clone());
     let (mut template, mut crop, mut search, mut post, mut step) = (vec![], vec![], vec![], vec![], vec![]);
-    let pb = indicatif::ProgressBar::new((2 * a.runs + 2) as u64);
-    for _ in 0..a.runs + 1 {
+    let pb = indicatif::ProgressBar::new((a.runs + template_runs + 2) as u64);
+    for _ in 0..template_runs + 1 {
         tracker.init(&frame, init)?;
         template.push(tracker.last_timings().network);
         pb.inc(1);
