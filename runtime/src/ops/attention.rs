@@ -266,6 +266,9 @@ fn softmax_row(r: &mut [f32]) {
         // SAFETY: as above.
         #[cfg(target_arch = "x86_64")]
         F32Kernel::Avx2Fma => unsafe { softmax_row_fma(r) },
+        // SAFETY: NEON is part of the aarch64 baseline (and the probe found it).
+        #[cfg(target_arch = "aarch64")]
+        F32Kernel::Neon => unsafe { softmax_row_neon(r) },
         _ => softmax_row_generic(r),
     }
 }
@@ -280,6 +283,79 @@ unsafe fn softmax_row_fma(r: &mut [f32]) {
 #[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn softmax_row_avx512(r: &mut [f32]) {
     softmax_row_generic(r)
+}
+
+/// [`softmax_row_generic`] in NEON intrinsics, bit for bit: the compiler leaves its max loop
+/// scalar (`fmaxnm` on single lanes) and its exponential four lanes at a time with one chain in
+/// flight. Here the max, the exponential and the sum go sixteen lanes at a time (four
+/// independent chains), the exponential and the sum in one pass; the same unfused operations
+/// in the same order, and the lanes reduced as the portable loop reduces them.
+#[cfg(target_arch = "aarch64")]
+#[target_feature(enable = "neon")]
+unsafe fn softmax_row_neon(r: &mut [f32]) {
+    use std::arch::aarch64::*;
+    const L: usize = 16;
+    let full = r.len() / L * L;
+    let p = r.as_mut_ptr();
+    // SAFETY (every block below): the loads and stores are at `i..i + 16` with `i + 16 <= full
+    // <= r.len()`.
+    let max = unsafe {
+        let mut m = [vdupq_n_f32(f32::NEG_INFINITY); 4];
+        for i in (0..full).step_by(L) {
+            for (k, m) in m.iter_mut().enumerate() {
+                *m = vmaxnmq_f32(*m, vld1q_f32(p.add(i + 4 * k)));
+            }
+        }
+        let mut lanes = [0f32; L];
+        for (k, m) in m.iter().enumerate() {
+            vst1q_f32(lanes.as_mut_ptr().add(4 * k), *m);
+        }
+        r[full..].iter().chain(&lanes).fold(f32::NEG_INFINITY, |m, &v| m.max(v))
+    };
+    /// [`exp_nonpositive`] of `x - max` on four lanes, the same operations in the same order.
+    #[inline(always)]
+    unsafe fn exp4(x: float32x4_t, max: float32x4_t) -> float32x4_t {
+        let x = vmaxnmq_f32(vsubq_f32(x, max), vdupq_n_f32(-87.0));
+        let n = vrndnq_f32(vmulq_n_f32(x, std::f32::consts::LOG2_E));
+        let r = vaddq_f32(vsubq_f32(x, vmulq_n_f32(n, 0.693_359_4)), vmulq_n_f32(n, 2.121_944_4e-4));
+        let mut q = vmulq_n_f32(r, 1.0 / 720.0);
+        for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0] {
+            q = vmulq_f32(r, vaddq_f32(vdupq_n_f32(c), q));
+        }
+        let q = vaddq_f32(vdupq_n_f32(1.0), q);
+        let two_n = vreinterpretq_f32_s32(vshlq_n_s32::<23>(vaddq_s32(vcvtq_s32_f32(n), vdupq_n_s32(127))));
+        vmulq_f32(q, two_n)
+    }
+    let sum = unsafe {
+        let mv = vdupq_n_f32(max);
+        let mut s = [vdupq_n_f32(0.0); 4];
+        for i in (0..full).step_by(L) {
+            for (k, s) in s.iter_mut().enumerate() {
+                let e = exp4(vld1q_f32(p.add(i + 4 * k)), mv);
+                vst1q_f32(p.add(i + 4 * k), e);
+                *s = vaddq_f32(*s, e);
+            }
+        }
+        for v in &mut r[full..] {
+            *v = exp_nonpositive(*v - max);
+        }
+        let mut lanes = [0f32; L];
+        for (k, s) in s.iter().enumerate() {
+            vst1q_f32(lanes.as_mut_ptr().add(4 * k), *s);
+        }
+        let sum: f32 = lanes.iter().chain(&r[full..]).sum();
+        sum
+    };
+    let inv = 1.0 / sum;
+    // SAFETY: as above.
+    unsafe {
+        for i in (0..full).step_by(L) {
+            for k in 0..4 {
+                vst1q_f32(p.add(i + 4 * k), vmulq_n_f32(vld1q_f32(p.add(i + 4 * k)), inv));
+            }
+        }
+    }
+    r[full..].iter_mut().for_each(|v| *v *= inv);
 }
 
 #[inline(always)]
@@ -469,6 +545,23 @@ mod tests {
                 false => gemm_generic::<false>(&mut want, n, &a, kl, &b, ldb),
             }
             assert!(got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()), "{m}x{n}x{kl}");
+        }
+    }
+
+    /// The dispatched softmax (NEON on aarch64) gives the portable loop's bits, on rows with
+    /// and without a remainder past the sixteen lanes and with inputs far enough below the
+    /// max to underflow.
+    #[test]
+    fn softmax_paths_equal_the_portable_loop() {
+        for n in [1usize, 3, 15, 16, 17, 40, 121, 242, 625] {
+            let mut row: Vec<f32> = values(n, n).iter().map(|v| v * 30.0).collect();
+            if n > 2 {
+                row[n / 2] = -200.0;
+            }
+            let (mut got, mut want) = (row.clone(), row);
+            softmax_row(&mut got);
+            softmax_row_generic(&mut want);
+            assert!(got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()), "row of {n}");
         }
     }
 
