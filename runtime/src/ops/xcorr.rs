@@ -56,7 +56,9 @@ impl EvalOp for DepthwiseXCorr {
             correlate_channel(g, src, k, b, dst, scratch);
         };
         let out = output_tensor(&[n, c, g.out_h(), g.out_w()], |out: &mut [f32]| {
-            par_chunks(out, plane, |i, dst| one(i, dst, &mut vec![0f32; g.scratch_len()]));
+            // Each thread's scratch is its own and kept from frame to frame (correlate_channel
+            // writes every value it reads).
+            par_chunks(out, plane, |i, dst| super::with_padded(g.scratch_len(), &[], |s| one(i, dst, s)));
             Ok(())
         })?;
         Ok(tvec!(out.into_tvalue()))

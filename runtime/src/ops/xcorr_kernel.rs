@@ -32,15 +32,28 @@ impl Geometry {
         self.out_w().div_ceil(LANES) * LANES + self.kw - 1
     }
 
-    /// Floats of scratch [`correlate_channel`] needs.
+    /// Floats of scratch [`correlate_channel`] needs: the padded input, and on aarch64 the
+    /// kernel's taps for four output rows at once ([`row_taps`]).
     pub fn scratch_len(&self) -> usize {
-        self.h * self.padded_w()
+        self.h * self.padded_w() + self.taps_len()
+    }
+
+    /// Floats of [`row_taps`] (none where the NEON path is not compiled).
+    fn taps_len(&self) -> usize {
+        if cfg!(target_arch = "aarch64") {
+            (self.kh + NEON_ROWS - 1) * self.kw * NEON_ROWS
+        } else {
+            0
+        }
     }
 }
 
+/// Output rows the NEON strips take at once.
+const NEON_ROWS: usize = 4;
+
 /// `out[y,x] = bias + Σ_{i,j} input[y+i, x+j]·kernel[i,j]` for one channel (`input` [h,w],
 /// `kernel` [kh,kw], `out` [h−kh+1, w−kw+1], all row-major). `scratch` holds the input with its
-/// rows padded to whole blocks.
+/// rows padded to whole blocks (and, on aarch64, the kernel's taps; [`Geometry::scratch_len`]).
 pub(crate) fn correlate_channel(
     g: Geometry,
     input: &[f32],
@@ -50,7 +63,7 @@ pub(crate) fn correlate_channel(
     scratch: &mut [f32],
 ) {
     let wp = g.padded_w();
-    let scratch = &mut scratch[..g.h * wp];
+    let (scratch, _taps) = scratch[..g.scratch_len()].split_at_mut(g.h * wp);
     for (dst, src) in scratch.chunks_exact_mut(wp).zip(input.chunks_exact(g.w)) {
         dst[..g.w].copy_from_slice(src);
         dst[g.w..].fill(0.0);
@@ -65,7 +78,7 @@ pub(crate) fn correlate_channel(
         F32Kernel::Avx2Fma => unsafe { strips_avx2_fma(g, scratch, kernel, bias, out) },
         // SAFETY: NEON is part of the aarch64 baseline (and the probe found it).
         #[cfg(target_arch = "aarch64")]
-        F32Kernel::Neon => unsafe { strips_neon(g, scratch, kernel, bias, out) },
+        F32Kernel::Neon => unsafe { strips_neon(g, scratch, kernel, bias, out, _taps) },
         _ => strips::<false>(g, scratch, kernel, bias, out),
     }
 }
@@ -73,15 +86,17 @@ pub(crate) fn correlate_channel(
 /// NEON: strips of 16 columns (four 4-lane registers), four output rows at a time: 16
 /// accumulators and four input loads per kernel tap, so each load serves up to four kernel
 /// rows. Where all four rows have a kernel row for an input row (all but the first and last
-/// three input rows of a block), their four taps are one vector (`taps`, made once per
-/// channel) and each multiply-add takes its tap by lane: no scalar loads, no branches
+/// three input rows of a block), their four taps are one vector (made once per channel in
+/// `taps`, [`Geometry::taps_len`] floats or more) and each multiply-add takes its tap by lane: no scalar loads, no branches
 /// (`FMLA v.4s, v.4s, v.s[q]`). Fused multiply-adds in the generic order: the same bits as
 /// the AVX paths.
 #[cfg(target_arch = "aarch64")]
 #[target_feature(enable = "neon")]
-unsafe fn strips_neon(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32]) {
-    const R: usize = 4;
-    let taps = row_taps::<R>(g, kernel);
+unsafe fn strips_neon(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, out: &mut [f32], taps: &mut [f32]) {
+    const R: usize = NEON_ROWS;
+    let taps = &mut taps[..g.taps_len()];
+    row_taps::<R>(g, kernel, taps);
+    let taps = &*taps;
     walk(g, LANES, R, |rows, y, x0, cols| {
         let a = (g, padded, kernel, bias, &mut *out, y, x0, cols);
         // SAFETY: NEON is enabled here; the loads stay in `padded` (rows padded to whole
@@ -103,10 +118,11 @@ unsafe fn strips_neon(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, ou
 
 /// The taps `R` consecutive output rows take from input row `r` (of a block) at kernel column
 /// `j`: `taps[(r·kw + j)·R + q] = kernel[(r − q)·kw + j]`, for the input rows where every `q`
-/// has one (`R − 1 <= r < kh`; the others are left 0 and not read).
+/// has one (`R − 1 <= r < kh`; the others are set to 0 and not read). `taps` holds
+/// `(kh + R − 1)·kw·R` floats.
 #[cfg(target_arch = "aarch64")]
-fn row_taps<const R: usize>(g: Geometry, kernel: &[f32]) -> Vec<f32> {
-    let mut taps = vec![0f32; (g.kh + R - 1) * g.kw * R];
+fn row_taps<const R: usize>(g: Geometry, kernel: &[f32], taps: &mut [f32]) {
+    taps.fill(0.0);
     for r in R - 1..g.kh {
         for j in 0..g.kw {
             for q in 0..R {
@@ -114,7 +130,6 @@ fn row_taps<const R: usize>(g: Geometry, kernel: &[f32]) -> Vec<f32> {
             }
         }
     }
-    taps
 }
 
 /// The strips of an output: columns `max_cols` at a time, and in each, rows `group` at a time
@@ -423,7 +438,8 @@ mod tests {
             {
                 let mut neon = vec![f32::NAN; out.len()];
                 // SAFETY: NEON is part of the aarch64 baseline.
-                unsafe { strips_neon(g, &scratch, &kernel, 0.25, &mut neon) };
+                let mut taps = vec![f32::NAN; g.taps_len()];
+                unsafe { strips_neon(g, &scratch, &kernel, 0.25, &mut neon, &mut taps) };
                 let mut fused = vec![f32::NAN; out.len()];
                 strips::<true>(g, &scratch, &kernel, 0.25, &mut fused);
                 assert!(neon == fused, "{h}x{w} by {kh}x{kw}: NEON differs from the portable fused loop");
