@@ -332,10 +332,13 @@ impl WinogradConv {
         sc.cols.resize(al * t, 0.0);
         for (j, col) in sc.cols.chunks_exact_mut(t).enumerate() {
             for (dst, row) in col.chunks_exact_mut(tw).zip(sc.row.chunks_exact(wp)) {
-                let src = &row[j..][..2 * tw - 1];
-                for (tx, d) in dst.iter_mut().enumerate() {
-                    *d = src[2 * tx];
+                // Every other value: as pairs (the indexed form stayed scalar, with a bounds
+                // check a value, on NEON), the last tile's from the odd one left.
+                let (pairs, last) = row[j..][..2 * tw - 1].as_chunks::<2>();
+                for (d, p) in dst.iter_mut().zip(pairs) {
+                    *d = p[0];
                 }
+                dst[tw - 1] = last[0];
             }
         }
     }
@@ -388,11 +391,12 @@ impl WinogradConv {
                 let (ty, i) = (yo / 2, yo % 2);
                 let at = o * ld + ty * tw;
                 let (even, odd) = (&y[2 * i * n + at..][..tw], &y[(2 * i + 1) * n + at..][..tw]);
-                for (x, pair) in row.chunks_mut(2).enumerate() {
-                    pair[0] = bias + even[x];
-                    if let Some(v) = pair.get_mut(1) {
-                        *v = bias + odd[x];
-                    }
+                let (pairs, last) = row.as_chunks_mut::<2>();
+                for ((pair, &e), &o) in pairs.iter_mut().zip(even).zip(odd) {
+                    *pair = [bias + e, bias + o];
+                }
+                if let [v] = last {
+                    *v = bias + even[pairs.len()];
                 }
             }
             self.act.apply_all(plane);
