@@ -10,6 +10,7 @@ Run it through run.sh, which sets ONNX Runtime up in a virtual environment.
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -119,11 +120,25 @@ def main():
     p.add_argument("--int8-plan", help="an int8 plan of the same model (`prl quantize`): also time its search "
                    "network against ONNX Runtime's own int8 (quantize_static, QDQ, per-channel) of search.onnx")
     p.add_argument("--json", help="also write the report here")
+    p.add_argument("--keep-work", action="store_true",
+                   help="keep the work directory under target/ (the model and plan built here, the tensors, "
+                        "each round's `prl bench` report); removed at the end otherwise")
     p.add_argument("--build-arg", dest="build_args", action="append", default=[],
                    help="passed to `prl build` when the model is built here (e.g. --build-arg=--random-seed=0)")
     args = p.parse_args()
 
     work = tempfile.mkdtemp(prefix="prl-peer-", dir="target" if os.path.isdir("target") else None)
+    try:
+        run(args, work)
+    finally:
+        # The model, plan, tensors and reports made here (27 MB for PRL-Track) go, unless asked.
+        if args.keep_work:
+            print(f"kept {work}")
+        else:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def run(args, work):
     model, plan = model_and_plan(args, work)
     tdir = os.path.join(work, "tensors")
     sh([args.prl, "bench", "--plan", plan, "--runs", "1", "--top", "0", "--save-tensors", tdir])
