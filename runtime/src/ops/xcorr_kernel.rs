@@ -103,14 +103,14 @@ unsafe fn strips_neon(g: Geometry, padded: &[f32], kernel: &[f32], bias: f32, ou
         // 16-column blocks), the stores in `out` (`cols` values a row).
         unsafe {
             match (rows, cols.div_ceil(4)) {
-                (R, 1) => rows_neon::<R, 1>(a, &taps),
-                (R, 2) => rows_neon::<R, 2>(a, &taps),
-                (R, 3) => rows_neon::<R, 3>(a, &taps),
-                (R, _) => rows_neon::<R, 4>(a, &taps),
-                (_, 1) => rows_neon::<1, 1>(a, &taps),
-                (_, 2) => rows_neon::<1, 2>(a, &taps),
-                (_, 3) => rows_neon::<1, 3>(a, &taps),
-                _ => rows_neon::<1, 4>(a, &taps),
+                (R, 1) => rows_neon::<R, 1>(a, taps),
+                (R, 2) => rows_neon::<R, 2>(a, taps),
+                (R, 3) => rows_neon::<R, 3>(a, taps),
+                (R, _) => rows_neon::<R, 4>(a, taps),
+                (_, 1) => rows_neon::<1, 1>(a, taps),
+                (_, 2) => rows_neon::<1, 2>(a, taps),
+                (_, 3) => rows_neon::<1, 3>(a, taps),
+                _ => rows_neon::<1, 4>(a, taps),
             }
         }
     });
