@@ -543,8 +543,10 @@ fn q_einsum_terms(node: &TypedNode) -> Option<(Vec<Vec<char>>, Vec<char>)> {
 /// leading axis of 1 allowed on either side), as a 1x1 [`ConvShape`] of `K` channels on a
 /// 1 x `M` map, with its layouts and whether the weights are `K x N`. Only on the AVX2 words
 /// path: there tract's integer kernel (`avx2_mmm_i32_8x8`) ran PRL-Track's eight such
-/// products at 1.3 GOP/s on an AMD EPYC, 830 of a 1000 ms int8 step; on VNNI and SDOT tract's
-/// kernels serve them and this form was not measured.
+/// products at 1.3 GOP/s on an AMD EPYC, 830 of a 1000 ms int8 step. On VNNI and SDOT tract's
+/// kernels serve them: on SDOT this form was measured (instructions counted under qemu, cycles
+/// modelled for a Cortex-A78, 2026-12-05) at 183 ms per PRL-Track int8 step against 178 with
+/// tract's `arm64simd_mmm_i32_8x8_dot`; on VNNI it was not.
 fn matmul_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Product, bool)> {
     if words_path() != Some(WordsPath::Avx2) {
         return None;
