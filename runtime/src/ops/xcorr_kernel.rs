@@ -87,8 +87,8 @@ pub(crate) fn correlate_channel(
 /// accumulators and four input loads per kernel tap, so each load serves up to four kernel
 /// rows. Where all four rows have a kernel row for an input row (all but the first and last
 /// three input rows of a block), their four taps are one vector (made once per channel in
-/// `taps`, [`Geometry::taps_len`] floats or more) and each multiply-add takes its tap by lane: no scalar loads, no branches
-/// (`FMLA v.4s, v.4s, v.s[q]`). Fused multiply-adds in the generic order: the same bits as
+/// `taps`, [`Geometry::taps_len`] floats or more) and each multiply-add takes its tap by lane:
+/// no scalar loads, no branches (`FMLA v.4s, v.4s, v.s[q]`). Fused multiply-adds in the generic order: the same bits as
 /// the AVX paths.
 #[cfg(target_arch = "aarch64")]
 #[target_feature(enable = "neon")]
