@@ -776,14 +776,6 @@ mod tests {
         }
     }
 
-    /// Sums whose product with `scale` rounds one way in f32 and the other exactly, with
-    /// outputs (zero point 100) in `0..=200`.
-    fn ties(scale: f32) -> Vec<i32> {
-        let scaler = Scaler::new(scale, RoundingPolicy::Even);
-        let limit = (100.0 / scale) as i32;
-        (-limit..limit).filter(|&x| (x as f32 * scale).round_ties_even() as i32 != x * scaler).collect()
-    }
-
     /// With one scale for every output channel, every path rounds the exact product, as tract's
     /// `Scaler`: on an image at the input's zero point each channel's sum is its bias, chosen
     /// where the f32 product rounds the other way; the other image is the usual one.
@@ -797,7 +789,7 @@ mod tests {
         let (x_scale, w_scale, y_scale) = (0.0069588f32, 0.0007929764f32 / 32.0, 0.0028860883f32);
         let scale = x_scale * w_scale / y_scale;
         assert!(EXACT_SCALES.contains(&scale));
-        let ties = ties(scale);
+        let ties = super::super::qconv_kernel::tie_sums(scale);
         assert!(ties.len() >= 8, "the case needs sums that round apart: {}", ties.len());
         for s in [
             // AMX (where the CPU has it) and channels in lanes (VNNI), a partial group of four.

@@ -29,6 +29,16 @@ pub(super) fn requant_one(sum: i32, scale: f32, exact: bool, y0: u8) -> u8 {
     }
 }
 
+/// Sums whose product with `scale` rounds one way in f32 and the other exactly (where
+/// [`requant_one`]'s two forms part), with outputs (zero point 100) in `0..=200`: the test
+/// cases of every exact requantisation path.
+#[cfg(test)]
+pub(super) fn tie_sums(scale: f32) -> Vec<i32> {
+    let scaler = Scaler::new(scale, RoundingPolicy::Even);
+    let limit = (100.0 / scale) as i32;
+    (-limit..limit).filter(|&x| (x as f32 * scale).round_ties_even() as i32 != x * scaler).collect()
+}
+
 /// `out[i] = requant_one(sums[i] + offset, scale, exact, y0)`: on AVX-512 where [`crate::isa`]
 /// allows it, else on AVX2.
 ///
@@ -414,10 +424,7 @@ mod tests {
             return;
         }
         let scale = 0.0069588f32 * (0.0007929764 / 32.0) / 0.0028860883;
-        let scaler = Scaler::new(scale, RoundingPolicy::Even);
-        let limit = (200.0 / scale) as i32;
-        let ties: Vec<i32> =
-            (-limit..limit).filter(|&x| (x as f32 * scale).round_ties_even() as i32 != x * scaler).collect();
+        let ties = tie_sums(scale);
         assert!(ties.len() >= 8, "the case needs sums that round apart: {}", ties.len());
         let mut sums: Vec<i32> = (0..2000).map(|i| (i * 7919 % 60001) - 30000).collect();
         sums.extend(&ties);
