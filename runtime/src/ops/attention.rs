@@ -306,18 +306,24 @@ unsafe fn softmax_row_neon(r: &mut [f32]) {
                 *m = vmaxnmq_f32(*m, vld1q_f32(p.add(i + 4 * k)));
             }
         }
-        let mut lanes = [0f32; L];
-        for (k, m) in m.iter().enumerate() {
-            vst1q_f32(lanes.as_mut_ptr().add(4 * k), *m);
-        }
-        r[full..].iter().chain(&lanes).fold(f32::NEG_INFINITY, |m, &v| m.max(v))
+        r[full..].iter().chain(&lanes16(m)).fold(f32::NEG_INFINITY, |m, &v| m.max(v))
     };
+    /// Four registers' lanes in order, as the portable loop's sixteen.
+    #[inline(always)]
+    fn lanes16(v: [float32x4_t; 4]) -> [f32; 16] {
+        let mut lanes = [0f32; 16];
+        for (k, v) in v.iter().enumerate() {
+            // SAFETY: four floats into lanes 4k..4k + 4 of sixteen; NEON is baseline.
+            unsafe { vst1q_f32(lanes.as_mut_ptr().add(4 * k), *v) };
+        }
+        lanes
+    }
     /// [`exp_nonpositive`] of `x - max` on four lanes, the same operations in the same order.
     #[inline(always)]
     unsafe fn exp4(x: float32x4_t, max: float32x4_t) -> float32x4_t {
-        let x = vmaxnmq_f32(vsubq_f32(x, max), vdupq_n_f32(-87.0));
+        let x = vmaxnmq_f32(vsubq_f32(x, max), vdupq_n_f32(EXP_MIN));
         let n = vrndnq_f32(vmulq_n_f32(x, std::f32::consts::LOG2_E));
-        let r = vaddq_f32(vsubq_f32(x, vmulq_n_f32(n, 0.693_359_4)), vmulq_n_f32(n, 2.121_944_4e-4));
+        let r = vaddq_f32(vsubq_f32(x, vmulq_n_f32(n, LN2_HI)), vmulq_n_f32(n, LN2_LO));
         let mut q = vmulq_n_f32(r, 1.0 / 720.0);
         for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0] {
             q = vmulq_f32(r, vaddq_f32(vdupq_n_f32(c), q));
@@ -339,11 +345,7 @@ unsafe fn softmax_row_neon(r: &mut [f32]) {
         for v in &mut r[full..] {
             *v = exp_nonpositive(*v - max);
         }
-        let mut lanes = [0f32; L];
-        for (k, s) in s.iter().enumerate() {
-            vst1q_f32(lanes.as_mut_ptr().add(4 * k), *s);
-        }
-        let sum: f32 = lanes.iter().chain(&r[full..]).sum();
+        let sum: f32 = lanes16(s).iter().chain(&r[full..]).sum();
         sum
     };
     let inv = 1.0 / sum;
@@ -385,14 +387,20 @@ fn softmax_row_generic(r: &mut [f32]) {
     r.iter_mut().for_each(|v| *v *= inv);
 }
 
+/// Where [`exp_nonpositive`] clamps its input (`e^x` underflows f32 below it).
+const EXP_MIN: f32 = -87.0;
+/// ln 2 in two parts (Cephes): `LN2_HI − LN2_LO`, the first exact in a product by small `n`.
+const LN2_HI: f32 = 0.693_359_4;
+const LN2_LO: f32 = 2.121_944_4e-4;
+
 /// `e^x` for `x <= 0` (a softmax's shifted inputs): `2^n · p(r)` with `x = n·ln2 + r`,
 /// `|r| <= ln2/2`, `p` the degree-6 Taylor polynomial (relative error under 2e-7); 0 below
 /// -87 (where f32 underflows anyway).
 #[inline(always)]
 fn exp_nonpositive(x: f32) -> f32 {
-    let x = x.max(-87.0);
+    let x = x.max(EXP_MIN);
     let n = (x * std::f32::consts::LOG2_E).round_ties_even();
-    let r = x - n * 0.693_359_4 + n * 2.121_944_4e-4; // ln2 in two parts (Cephes)
+    let r = x - n * LN2_HI + n * LN2_LO;
     let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
     // SAFETY: `n` is a whole number in [-126, 0] (x is clamped), so the cast is exact.
     let n = unsafe { n.to_int_unchecked::<i32>() };
