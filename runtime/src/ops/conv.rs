@@ -386,9 +386,14 @@ impl PackedConv {
         }
         let live: Vec<usize> = (0..taps).filter(|&t| nonzero[t]).collect();
         let blocks = shape.co.div_ceil(ROWS);
-        let lanes = match LanePack::registers_for(shape.co) {
-            Some(v) if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 => {
-                Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, v)))
+        let (_, wq) = shape.phase();
+        let (oh, ow) = shape.out();
+        let offsets = shape.tap_offsets(shape.ci);
+        let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp: wq, oh, ow };
+        let lanes = match (LanePack::registers_for(shape.co), crate::isa::f32_kernel()) {
+            (Some(v), crate::isa::F32Kernel::Avx512) => Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, v))),
+            (_, crate::isa::F32Kernel::Avx2Fma) if LanePack::compact_pays(&layout, shape.ci, shape.co) => {
+                Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, 1)))
             }
             _ => None,
         };
@@ -405,10 +410,6 @@ impl PackedConv {
         }
         let bias: Vec<f32> =
             (0..blocks * ROWS).map(|o| if bias.len() == 1 { bias[0] } else { *bias.get(o).unwrap_or(&0.0) }).collect();
-        let (_, wq) = shape.phase();
-        let (oh, ow) = shape.out();
-        let offsets = shape.tap_offsets(shape.ci);
-        let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp: wq, oh, ow };
         let (weights, bias) = (Arc::new(packed), Arc::new(bias));
         let plane_in = shape.stride * shape.stride * shape.phase().0 * wq;
         let zeros = vec![0.0; shape.h * shape.w];
@@ -449,6 +450,9 @@ impl Op for PackedConv {
         let s = &self.shape;
         let (kh, kw, ci, co, taps) = (s.kh, s.kw, s.ci, s.co, self.layout.taps.len());
         let tile = match &self.lanes {
+            Some(l) if l.compact() => {
+                format!("compact tiles of {} channels by {} output positions", l.channels(), l.positions())
+            }
             Some(l) => format!("tiles of {} channels in lanes", l.channels()),
             None => format!("tiles of {ROWS} channels"),
         };
@@ -484,10 +488,17 @@ impl EvalOp for PackedConv {
                     for (c, src) in src.chunks_exact(h * w).enumerate() {
                         s.pad_plane(src, &mut padded[c * plane_in..(c + 1) * plane_in]);
                     }
-                    if let Some(lanes) = &self.lanes {
-                        lanes.run(&self.layout, padded, &self.bias, dst);
-                        self.act.apply_all(dst);
-                        continue;
+                    match &self.lanes {
+                        Some(lanes) if lanes.compact() => {
+                            lanes.run_compact(&self.layout, padded, &self.bias, self.act, dst);
+                            continue;
+                        }
+                        Some(lanes) => {
+                            lanes.run(&self.layout, padded, &self.bias, dst);
+                            self.act.apply_all(dst);
+                            continue;
+                        }
+                        None => {}
                     }
                     par_chunks(dst, ROWS * plane, |b, out| {
                         let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
@@ -685,6 +696,11 @@ mod tests {
             (ConvShape { ci: 7, h: 15, w: 17, co: 40, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, false),
             (ConvShape { ci: 3, h: 23, w: 21, co: 96, kh: 5, kw: 5, pad: [0, 1, 0, 1], stride: 2 }, false),
             (ConvShape { ci: 9, h: 8, w: 8, co: 48, kh: 3, kw: 3, pad: [0; 4], stride: 1 }, true),
+            // Small maps of 16 input channels or more: on AVX2 the compact tiles (a partial
+            // block of 16 channels; stride 2; a map smaller than a tile).
+            (ConvShape { ci: 16, h: 8, w: 8, co: 24, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, false),
+            (ConvShape { ci: 20, h: 11, w: 9, co: 32, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 }, false),
+            (ConvShape { ci: 16, h: 4, w: 4, co: 16, kh: 3, kw: 3, pad: [0; 4], stride: 1 }, true),
         ] {
             let n_in = s.ci * s.h * s.w;
             let taps = s.ci * s.kh * s.kw;
@@ -695,6 +711,10 @@ mod tests {
             let bias: Vec<f32> = (0..s.co).map(|o| o as f32 / 4.0).collect();
             let op = PackedConv::new(s.clone(), &weight, &bias).unwrap();
             assert_eq!(op.layout.taps.len(), if zero_taps { taps - taps.div_ceil(3) } else { taps });
+            if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx2Fma {
+                let compact = op.lanes.as_ref().is_some_and(|l| l.compact());
+                assert_eq!(compact, s.ci >= 16, "{s:?}: compact tiles chosen {compact}");
+            }
             let x = tract_ndarray::Array4::from_shape_vec((2, s.ci, s.h, s.w), input.clone()).unwrap();
             let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();
             let out = out[0].try_as_plain_ram().unwrap();

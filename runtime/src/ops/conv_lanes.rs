@@ -9,6 +9,7 @@
 //! (docs/performance.md). Every output is still its bias plus the sum over the taps in packing
 //! order, one rounding per multiply-add: the same bits as every other path.
 
+use super::act::Activation;
 use super::conv_kernel::Layout;
 use super::{par_for, SyncPtr};
 
@@ -77,11 +78,11 @@ impl<T: Copy + Default> Lanes<T> {
     }
 
     /// Positions per tile.
-    pub(super) fn positions(&self) -> usize {
-        if self.v == 3 {
-            8
-        } else {
-            12
+    pub(crate) fn positions(&self) -> usize {
+        match self.v {
+            3 => 8,
+            2 => 12,
+            _ => COMPACT_P,
         }
     }
 
@@ -106,9 +107,68 @@ impl<T: Copy + Default> Lanes<T> {
 }
 
 impl LanePack {
-    /// Pack OIHW `weight` (`[co][taps]`) for `v` registers, keeping the taps `live`.
+    /// Pack OIHW `weight` (`[co][taps]`) for `v` registers, keeping the taps `live` (`v = 1`:
+    /// the compact tiles of [`LanePack::run_compact`]).
     pub(crate) fn new(weight: &[f32], taps: usize, live: &[usize], co: usize, v: usize) -> LanePack {
         Lanes::pack(co, live.len(), v, |o, i| weight[o * taps + live[i]])
+    }
+
+    /// Whether the compact tiles (16 channels by [`COMPACT_P`] output positions, no wide
+    /// columns) serve `co` output channels from `ci` input channels in layout `l` better than
+    /// [`super::conv_kernel`]'s AVX2 tiles of 4 channels by 24 wide positions: when they compute
+    /// at least 5% fewer values (output positions included, rounded up to whole tiles). Per
+    /// value both run alike on an AMD EPYC (Zen 2), except on a layer of few input channels
+    /// (PRL-Track's first, 3 channels, 11x11, stride 2: 5-10% slower in compact tiles), which
+    /// keeps the wide ones. Small maps, where a wide row's dropped columns are a large share
+    /// (PRL-Track's template layers 3-5: 17-25%), take the compact tiles.
+    pub(crate) fn compact_pays(l: &Layout, ci: usize, co: usize) -> bool {
+        let plane = l.oh * l.ow;
+        let wide = l.positions().div_ceil(24) * 24 * co.div_ceil(4) * 4;
+        let compact = plane.div_ceil(COMPACT_P) * COMPACT_P * co.div_ceil(L) * L;
+        co >= L && ci >= L && compact * 20 < wide * 19
+    }
+
+    /// Whether the packing is for the compact tiles ([`LanePack::run_compact`]).
+    pub(crate) fn compact(&self) -> bool {
+        self.v == 1
+    }
+
+    /// [`LanePack::run`] for a `v = 1` packing, followed by `act`: tiles of 16 channels by
+    /// [`COMPACT_P`] consecutive output positions, each position reading its own row of
+    /// `padded`, so no wide column is computed. `padded` extends past the last tap of the last
+    /// position.
+    pub(crate) fn run_compact(&self, l: &Layout, padded: &[f32], bias: &[f32], act: Activation, out: &mut [f32]) {
+        let plane = l.oh * l.ow;
+        assert!(self.v == 1 && l.taps.len() == self.taps && plane > 0);
+        assert!(l.taps.iter().all(|&t| t + l.positions() <= padded.len()));
+        assert!(out.len() == self.co * plane && bias.len() >= self.co);
+        let dst = SyncPtr(out.as_mut_ptr());
+        for_each_item(self.co.div_ceil(L), plane.div_ceil(COMPACT_P), |b, first, count| {
+            let weights = self.block(b);
+            let mut sums = vec![0f32; count * L * COMPACT_P];
+            match crate::isa::f32_kernel() {
+                // SAFETY: the CPU has AVX2 and FMA; every read stays in `padded` (asserted
+                // above: every tap from any output position) and `weights`.
+                #[cfg(target_arch = "x86_64")]
+                crate::isa::F32Kernel::Avx2Fma | crate::isa::F32Kernel::Avx512 => unsafe {
+                    compact_avx2(l, padded, weights, first, &mut sums)
+                },
+                _ => compact_tiles(l, padded, weights, first, &mut sums),
+            }
+            let rows = L.min(self.co - b * L);
+            for (q, s) in sums.chunks_exact(L).enumerate() {
+                let at = first * COMPACT_P + q;
+                if at >= plane {
+                    break;
+                }
+                for (r, s) in s[..rows].iter().enumerate() {
+                    let o = b * L + r;
+                    // SAFETY: `o < co` and `at < plane`, within `out` (asserted); each
+                    // (channel, position) belongs to one item only.
+                    unsafe { *dst.at(o * plane + at) = act.apply(s + bias[o]) };
+                }
+            }
+        });
     }
 
     /// `out` (`co` planes of `oh·ow`) = `bias` + the convolution of `padded` (which extends
@@ -200,6 +260,110 @@ fn tiles(l: &Layout, oc: usize, px: usize, padded: &[f32], weights: &[f32], firs
     }
 }
 
+/// Output positions per compact tile.
+pub(crate) const COMPACT_P: usize = 6;
+
+/// Where output position `at` (of `oh·ow`, clamped to the last) reads tap 0 in the padded input.
+fn compact_offset(l: &Layout, at: usize) -> usize {
+    let at = at.min(l.oh * l.ow - 1);
+    at / l.ow * l.wp + at % l.ow
+}
+
+/// The portable form of the compact tiles (the reference the AVX2 one is tested against): for
+/// tiles `first..` (as many as `sums` holds), `sums[tile][position][channel]`, fused
+/// multiply-adds in tap order from zero; positions past the plane repeat its last.
+fn compact_tiles(l: &Layout, padded: &[f32], weights: &[f32], first: usize, sums: &mut [f32]) {
+    for (i, s) in sums.chunks_exact_mut(L).enumerate() {
+        let base = compact_offset(l, first * COMPACT_P + i);
+        for (&t, w) in l.taps.iter().zip(weights.chunks_exact(L)) {
+            let x = padded[base + t];
+            for (s, &w) in s.iter_mut().zip(w) {
+                *s = x.mul_add(w, *s);
+            }
+        }
+    }
+}
+
+/// Taps per pass over the compact tiles (16 KB of weights, half an L1).
+#[cfg(target_arch = "x86_64")]
+const COMPACT_CHUNK: usize = 256;
+
+/// [`compact_tiles`] on AVX2: 12 accumulators (6 positions by two registers of 8 channels),
+/// two weight loads and six broadcasts a tap, the taps taken [`COMPACT_CHUNK`] at a time over
+/// every tile. In assembly, as [`super::conv_kernel`]'s AVX2 tile, so that the 12
+/// accumulators, two weights and a broadcast keep to the 16 registers.
+///
+/// # Safety
+/// The CPU has AVX2 and FMA; every tap from every output position is within `padded`;
+/// `weights` holds 16 values per tap, 32-byte aligned (`Line`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn compact_avx2(l: &Layout, padded: &[f32], weights: &[f32], first: usize, sums: &mut [f32]) {
+    use std::arch::x86_64::*;
+    for (c, taps) in l.taps.chunks(COMPACT_CHUNK).enumerate() {
+        for (k, tile) in sums.chunks_exact_mut(L * COMPACT_P).enumerate() {
+            let p: [*const f32; COMPACT_P] = std::array::from_fn(|q| {
+                // SAFETY: an offset within `padded` (every output position's tap 0 is).
+                unsafe { padded.as_ptr().add(compact_offset(l, (first + k) * COMPACT_P + q)) }
+            });
+            let s = tile.as_mut_ptr();
+            // SAFETY (reads and writes): `tile` holds 6 x 16 values; the caller's promises
+            // for `padded` and `weights`; the loop runs `taps.len() >= 1` times, reading one tap
+            // offset, two weight vectors and six inputs a time.
+            unsafe {
+                let mut a: [__m256; 2 * COMPACT_P] = if c == 0 {
+                    [_mm256_setzero_ps(); 2 * COMPACT_P]
+                } else {
+                    std::array::from_fn(|v| _mm256_loadu_ps(s.add(8 * v)))
+                };
+                let [a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11] = &mut a;
+                std::arch::asm!(
+                    "2:",
+                    "mov {t}, qword ptr [{taps}]",
+                    "vmovaps ymm12, ymmword ptr [{w}]",
+                    "vmovaps ymm13, ymmword ptr [{w} + 32]",
+                    "vbroadcastss ymm14, dword ptr [{p0} + 4*{t}]",
+                    "vfmadd231ps ymm0, ymm14, ymm12",
+                    "vfmadd231ps ymm1, ymm14, ymm13",
+                    "vbroadcastss ymm15, dword ptr [{p1} + 4*{t}]",
+                    "vfmadd231ps ymm2, ymm15, ymm12",
+                    "vfmadd231ps ymm3, ymm15, ymm13",
+                    "vbroadcastss ymm14, dword ptr [{p2} + 4*{t}]",
+                    "vfmadd231ps ymm4, ymm14, ymm12",
+                    "vfmadd231ps ymm5, ymm14, ymm13",
+                    "vbroadcastss ymm15, dword ptr [{p3} + 4*{t}]",
+                    "vfmadd231ps ymm6, ymm15, ymm12",
+                    "vfmadd231ps ymm7, ymm15, ymm13",
+                    "vbroadcastss ymm14, dword ptr [{p4} + 4*{t}]",
+                    "vfmadd231ps ymm8, ymm14, ymm12",
+                    "vfmadd231ps ymm9, ymm14, ymm13",
+                    "vbroadcastss ymm15, dword ptr [{p5} + 4*{t}]",
+                    "vfmadd231ps ymm10, ymm15, ymm12",
+                    "vfmadd231ps ymm11, ymm15, ymm13",
+                    "add {taps}, 8",
+                    "add {w}, 64",
+                    "dec {n}",
+                    "jnz 2b",
+                    taps = inout(reg) taps.as_ptr() => _,
+                    w = inout(reg) weights.as_ptr().add(c * COMPACT_CHUNK * L) => _,
+                    n = inout(reg) taps.len() => _,
+                    t = out(reg) _,
+                    p0 = in(reg) p[0], p1 = in(reg) p[1], p2 = in(reg) p[2],
+                    p3 = in(reg) p[3], p4 = in(reg) p[4], p5 = in(reg) p[5],
+                    inout("ymm0") *a0, inout("ymm1") *a1, inout("ymm2") *a2, inout("ymm3") *a3,
+                    inout("ymm4") *a4, inout("ymm5") *a5, inout("ymm6") *a6, inout("ymm7") *a7,
+                    inout("ymm8") *a8, inout("ymm9") *a9, inout("ymm10") *a10, inout("ymm11") *a11,
+                    out("ymm12") _, out("ymm13") _, out("ymm14") _, out("ymm15") _,
+                    options(nostack, readonly),
+                );
+                for (v, a) in a.iter().enumerate() {
+                    _mm256_storeu_ps(s.add(8 * v), *a);
+                }
+            }
+        }
+    }
+}
+
 /// [`tiles`] on AVX-512: `V·P` accumulators (24 or 27 of the 32 registers), the taps taken
 /// `CHUNK` at a time over every tile, the partial sums kept in `sums`.
 #[cfg(target_arch = "x86_64")]
@@ -255,6 +419,65 @@ unsafe fn tiles_avx512<const V: usize, const P: usize>(
 mod tests {
     use super::*;
     use crate::isa::F32Kernel;
+
+    /// The compact tiles (AVX2 where the CPU has it) give the bits of the portable compact
+    /// tiles and of the wide ones (every path sums in tap order, one rounding per multiply-add),
+    /// and the convolution's sums: partial channel blocks, several tap passes, maps smaller
+    /// than a tile.
+    #[test]
+    fn compact_tiles_equal_the_portable_and_the_wide_ones() {
+        if !matches!(crate::isa::f32_kernel(), F32Kernel::Avx2Fma | F32Kernel::Avx512) {
+            println!("NOTE: no AVX2 here (or PRL_ISA caps it): the compact tiles run their portable form only");
+        }
+        for (ci, h, w, k, co) in [(30, 11, 23, 3, 40), (40, 12, 12, 3, 16), (7, 5, 6, 5, 48), (3, 4, 4, 3, 33)] {
+            let l = Layout::dense(ci, h, w, k);
+            let taps = l.taps.len();
+            let padded: Vec<f32> = (0..ci * h * w + 64).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
+            let weight: Vec<f32> = (0..co * taps).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+            let live: Vec<usize> = (0..taps).collect();
+            let pack = LanePack::new(&weight, taps, &live, co, 1);
+            assert!(pack.compact() && pack.positions() == COMPACT_P);
+            let bias: Vec<f32> = (0..co).map(|o| o as f32 / 8.0).collect();
+            let plane = l.oh * l.ow;
+            let mut got = vec![0f32; co * plane];
+            pack.run_compact(&l, &padded, &bias, Activation::NONE, &mut got);
+            let tiles_n = plane.div_ceil(COMPACT_P);
+            let wide_n = l.positions().div_ceil(COMPACT_P);
+            for b in 0..co.div_ceil(L) {
+                let block = &pack.values()[b * taps * L..(b + 1) * taps * L];
+                let mut sums = vec![0f32; tiles_n * L * COMPACT_P];
+                compact_tiles(&l, &padded, block, 0, &mut sums);
+                let mut wide = vec![0f32; wide_n * L * COMPACT_P];
+                tiles(&l, L, COMPACT_P, &padded, block, 0, &mut wide);
+                for (s, at) in outputs(&l, &wide, L, COMPACT_P, 0) {
+                    for (r, s) in s.iter().enumerate().take(co - b * L) {
+                        let o = b * L + r;
+                        let want = s + bias[o];
+                        assert!(sums[at * L + r] + bias[o] == want, "{co} channels: compact and wide sums differ");
+                        assert!(got[o * plane + at] == want, "{co} channels, output {o} at {at}: dispatched differs");
+                    }
+                }
+            }
+            // With an activation: applied to every output, as the wide tiles' callers do.
+            let act = Activation { lo: -1.0, hi: 2.0, hard_swish: true };
+            let mut with_act = vec![0f32; co * plane];
+            pack.run_compact(&l, &padded, &bias, act, &mut with_act);
+            let mut want = got.clone();
+            act.apply_all(&mut want);
+            assert!(with_act == want, "{co} channels: the activation differs");
+            for o in [0, co - 1] {
+                for at in [0, plane - 1] {
+                    let (y, x) = (at / l.ow, at % l.ow);
+                    let mut acc = bias[o] as f64;
+                    for (tap, &t) in l.taps.iter().enumerate() {
+                        acc += padded[y * l.wp + x + t] as f64 * weight[o * taps + tap] as f64;
+                    }
+                    let g = got[o * plane + at] as f64;
+                    assert!((g - acc).abs() < 1e-3, "{co} channels, output {o} at {at}: {g} against {acc}");
+                }
+            }
+        }
+    }
 
     /// The dispatched tiles give the portable tiles' bits, for both tile shapes, with a
     /// partial last block and several tap chunks.

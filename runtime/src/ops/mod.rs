@@ -346,6 +346,8 @@ pub(crate) fn amx_available() -> bool {
 pub(crate) fn kernel_name(op: &str, info: &str) -> String {
     let isa = crate::isa();
     match op {
+        // Tiles over output positions without wide columns (small maps, AVX2).
+        "PackedConv" if info.contains("compact tiles") => format!("{} compact", crate::isa::f32_kernel().name()),
         "PackedConv" | "DepthwiseConv" | "DepthwiseConvHwc" | "DepthwiseXCorr" | "ConstMatMul" | "PointwiseConv"
         | "AttnScores" | "AttnMix" | "RowSoftmax" | "QuantizeU8" | "SqueezeExcite" => {
             crate::isa::f32_kernel().name().to_string()
