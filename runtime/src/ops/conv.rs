@@ -392,7 +392,7 @@ impl PackedConv {
         let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp: wq, oh, ow };
         let lanes = match (LanePack::registers_for(shape.co), crate::isa::f32_kernel()) {
             (Some(v), crate::isa::F32Kernel::Avx512) => Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, v))),
-            (_, crate::isa::F32Kernel::Avx2Fma) if LanePack::compact_pays(&layout, shape.ci, shape.co) => {
+            (_, crate::isa::F32Kernel::Avx2Fma) if LanePack::compact_pays(&shape) => {
                 Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, 1)))
             }
             _ => None,

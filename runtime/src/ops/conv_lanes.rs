@@ -10,6 +10,7 @@
 //! order, one rounding per multiply-add: the same bits as every other path.
 
 use super::act::Activation;
+use super::conv::ConvShape;
 use super::conv_kernel::Layout;
 use super::{par_for, SyncPtr};
 
@@ -113,19 +114,26 @@ impl LanePack {
         Lanes::pack(co, live.len(), v, |o, i| weight[o * taps + live[i]])
     }
 
-    /// Whether the compact tiles (16 channels by [`COMPACT_P`] output positions, no wide
-    /// columns) serve `co` output channels from `ci` input channels in layout `l` better than
-    /// [`super::conv_kernel`]'s AVX2 tiles of 4 channels by 24 wide positions: when they compute
-    /// at least 5% fewer values (output positions included, rounded up to whole tiles). Per
-    /// value both run alike on an AMD EPYC (Zen 2), except on a layer of few input channels
-    /// (PRL-Track's first, 3 channels, 11x11, stride 2: 5-10% slower in compact tiles), which
-    /// keeps the wide ones. Small maps, where a wide row's dropped columns are a large share
-    /// (PRL-Track's template layers 3-5: 17-25%), take the compact tiles.
-    pub(crate) fn compact_pays(l: &Layout, ci: usize, co: usize) -> bool {
-        let plane = l.oh * l.ow;
-        let wide = l.positions().div_ceil(24) * 24 * co.div_ceil(4) * 4;
-        let compact = plane.div_ceil(COMPACT_P) * COMPACT_P * co.div_ceil(L) * L;
-        co >= L && ci >= L && compact * 20 < wide * 19
+    /// Whether a convolution of `shape` takes the compact tiles (16 channels by [`COMPACT_P`]
+    /// output positions, no wide columns) on AVX2 rather than [`super::conv_kernel`]'s tiles
+    /// of 4 channels by 24 wide positions: when they compute at least 5% fewer values (output
+    /// positions and channels, rounded up to whole tiles). Per value both run alike on an AMD
+    /// EPYC (Zen 2), except on a layer of few input channels (PRL-Track's first, 3 channels,
+    /// 11x11, stride 2: 5-10% slower in compact tiles), which keeps the wide ones. Small maps,
+    /// where a wide row's dropped columns are a large share (PRL-Track's template layers 3-5:
+    /// 17-25%), take the compact tiles.
+    pub(crate) fn compact_pays(shape: &ConvShape) -> bool {
+        let ((oh, ow), wp, co) = (shape.out(), shape.phase().1, shape.co);
+        let wide = ((oh - 1) * wp + ow).div_ceil(24) * 24 * co.div_ceil(4) * 4;
+        let compact = Self::compact_positions(shape) * co.div_ceil(L) * L;
+        co >= L && shape.ci >= L && compact * 20 < wide * 19
+    }
+
+    /// The output positions the compact tiles compute for `shape`: the plane's, rounded up to
+    /// whole tiles.
+    pub(crate) fn compact_positions(shape: &ConvShape) -> usize {
+        let (oh, ow) = shape.out();
+        (oh * ow).div_ceil(COMPACT_P) * COMPACT_P
     }
 
     /// Whether the packing is for the compact tiles ([`LanePack::run_compact`]).

@@ -42,6 +42,7 @@ use super::conv::ConvShape;
 use super::conv_kernel::{channel_block, tile_positions, Layout, MAX_PX, ROWS};
 #[cfg(target_arch = "x86_64")]
 use super::conv_kernel::{packed_products_avx2, PACKED_PX};
+use super::conv_lanes::LanePack;
 use super::{output_tensor_written, par_chunks, same_bits, with_padded};
 
 /// One F(2x2, r x r) algorithm: its kernel side `r`, tile side `alpha = r + 1` and matrices
@@ -149,7 +150,8 @@ fn combine<'a>(dst: &mut [f32], coef: &[f32], src: impl Fn(usize) -> &'a [f32]) 
 /// to be small beside the products, and products that are at most [`PRODUCTS_PAY`] of the
 /// direct form's multiply-adds as the kernels run them: `α²` per tile against `r²` per wide
 /// position of [`super::PackedConv`] (`(oh − 1)·Wp + ow`, the padded rows' dropped columns
-/// included), each rounded up to whole tiles of the kernel.
+/// included), each rounded up to whole tiles of the kernel; or, where `PackedConv` runs the
+/// layer in compact tiles (AVX2, small maps), `r²` per output position, rounded up to them.
 pub(crate) fn suits(shape: &ConvShape) -> bool {
     let Some(f) = form(shape.kh) else { return false };
     if shape.kw != shape.kh || shape.stride != 1 || shape.ci < 32 || shape.co < 32 {
@@ -159,7 +161,12 @@ pub(crate) fn suits(shape: &ConvShape) -> bool {
     let px = tile_positions();
     let whole = |n: usize| n.div_ceil(px) * px;
     let winograd = f.alpha * f.alpha * whole(oh.div_ceil(2) * ow.div_ceil(2));
-    let direct = f.r * f.r * whole((oh - 1) * shape.phase().1 + ow);
+    let direct = f.r
+        * f.r
+        * match crate::isa::f32_kernel() {
+            crate::isa::F32Kernel::Avx2Fma if LanePack::compact_pays(shape) => LanePack::compact_positions(shape),
+            _ => whole((oh - 1) * shape.phase().1 + ow),
+        };
     winograd * PRODUCTS_PAY.1 <= direct * PRODUCTS_PAY.0
 }
 
