@@ -8,6 +8,11 @@
 //! FMA peak on an AVX-512 Xeon with two FMA units, where this tile runs at 65-75%
 //! (docs/performance.md). Every output is still its bias plus the sum over the taps in packing
 //! order, one rounding per multiply-add: the same bits as every other path.
+//!
+//! On AVX2 the same packing (one 16-channel line a tap) serves the compact tiles of small maps
+//! ([`LanePack::run_compact`]): 16 channels by 6 consecutive *output* positions, each position
+//! reading its own row of the padded input, so that a wide row's dropped columns are not
+//! computed at all.
 
 use super::act::Activation;
 use super::conv::ConvShape;
