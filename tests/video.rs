@@ -2,7 +2,7 @@
 //! exactly the boxes the frame folder gives; live pacing drops frames when the tracker is slower
 //! than the source and says how many; a UDP stream tracks live until Ctrl-C, which writes the
 //! results; an RTSP camera (GStreamer's RTSP server, `scripts/rtsp-server.py`) tracks live until
-//! its stream ends; a missing file is a one-line error. Needs the `ffmpeg` and `ffprobe`
+//! its stream ends; a missing file or camera device is a one-line error. Needs the `ffmpeg` and `ffprobe`
 //! programs, and for RTSP the server's packages (`.ci/run` installs them all); without them
 //! these tests say so and pass.
 
@@ -111,6 +111,14 @@ fn a_lossless_video_tracks_exactly_as_its_frames() {
     let o = common::prl(&["track", "--plan", &s(&plan), "--video", "/nonexistent/v.mkv", "--init", &init]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.trim().lines().count() == 1 && err.contains("/nonexistent/v.mkv"), "{err}");
+    // A camera device that is not there (FFmpeg's V4L2 input): one line, naming it. (No camera
+    // is at hand on CI's machines, so this is as far as the device path is tested.)
+    let cam = "/dev/video99";
+    if !Path::new(cam).exists() {
+        let o = common::prl(&["track", "--plan", &s(&plan), "--video", cam, "--init", &init]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.trim().lines().count() == 1 && err.contains(cam), "{err}");
+    }
 }
 
 #[test]
