@@ -386,15 +386,9 @@ impl PackedConv {
         }
         let live: Vec<usize> = (0..taps).filter(|&t| nonzero[t]).collect();
         let blocks = shape.co.div_ceil(ROWS);
-        let (_, wq) = shape.phase();
-        let (oh, ow) = shape.out();
-        let offsets = shape.tap_offsets(shape.ci);
-        let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp: wq, oh, ow };
         let lanes = match (LanePack::registers_for(shape.co), crate::isa::f32_kernel()) {
             (Some(v), crate::isa::F32Kernel::Avx512) => Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, v))),
-            (_, crate::isa::F32Kernel::Avx2Fma) if LanePack::compact_pays(&shape) => {
-                Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, 1)))
-            }
+            _ if LanePack::compact_pays(&shape) => Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, 1))),
             _ => None,
         };
         // Written in order, block by block: the block's rows are read as 8 streams (not at all
@@ -410,6 +404,10 @@ impl PackedConv {
         }
         let bias: Vec<f32> =
             (0..blocks * ROWS).map(|o| if bias.len() == 1 { bias[0] } else { *bias.get(o).unwrap_or(&0.0) }).collect();
+        let (_, wq) = shape.phase();
+        let (oh, ow) = shape.out();
+        let offsets = shape.tap_offsets(shape.ci);
+        let layout = Layout { taps: live.iter().map(|&t| offsets[t]).collect(), wp: wq, oh, ow };
         let (weights, bias) = (Arc::new(packed), Arc::new(bias));
         let plane_in = shape.stride * shape.stride * shape.phase().0 * wq;
         let zeros = vec![0.0; shape.h * shape.w];

@@ -16,7 +16,7 @@
 
 use super::act::Activation;
 use super::conv::ConvShape;
-use super::conv_kernel::Layout;
+use super::conv_kernel::{tile_positions, Layout, ROWS};
 use super::{par_for, SyncPtr};
 
 /// Output channels per register.
@@ -119,17 +119,21 @@ impl LanePack {
         Lanes::pack(co, live.len(), v, |o, i| weight[o * taps + live[i]])
     }
 
-    /// Whether a convolution of `shape` takes the compact tiles (16 channels by [`COMPACT_P`]
-    /// output positions, no wide columns) on AVX2 rather than [`super::conv_kernel`]'s tiles
-    /// of 4 channels by 24 wide positions: when they compute at least 5% fewer values (output
-    /// positions and channels, rounded up to whole tiles). Per value both run alike on an AMD
-    /// EPYC (Zen 2), except on a layer of few input channels (PRL-Track's first, 3 channels,
-    /// 11x11, stride 2: 5-10% slower in compact tiles), which keeps the wide ones. Small maps,
-    /// where a wide row's dropped columns are a large share (PRL-Track's template layers 3-5:
-    /// 17-25%), take the compact tiles.
+    /// Whether [`super::conv::PackedConv`] runs a convolution of `shape` in the compact tiles
+    /// (16 channels by [`COMPACT_P`] output positions, no wide columns) on this machine: on
+    /// AVX2, where they compute at least 5% fewer values (output positions and channels,
+    /// rounded up to whole tiles) than [`super::conv_kernel`]'s tiles of 4 channels (half a
+    /// block) by [`tile_positions`] wide positions. Per value both run alike on an AMD EPYC
+    /// (Zen 2), except on a layer of few input channels (PRL-Track's first, 3 channels, 11x11,
+    /// stride 2: 5-10% slower in compact tiles), which keeps the wide ones. Small maps, where a
+    /// wide row's dropped columns are a large share (PRL-Track's template layers 3-5: 17-25%),
+    /// take the compact tiles.
     pub(crate) fn compact_pays(shape: &ConvShape) -> bool {
-        let ((oh, ow), wp, co) = (shape.out(), shape.phase().1, shape.co);
-        let wide = ((oh - 1) * wp + ow).div_ceil(24) * 24 * co.div_ceil(4) * 4;
+        if crate::isa::f32_kernel() != crate::isa::F32Kernel::Avx2Fma {
+            return false;
+        }
+        let ((oh, ow), wp, co, half) = (shape.out(), shape.phase().1, shape.co, ROWS / 2);
+        let wide = ((oh - 1) * wp + ow).div_ceil(tile_positions()) * tile_positions() * co.div_ceil(half) * half;
         let compact = Self::compact_positions(shape) * co.div_ceil(L) * L;
         co >= L && shape.ci >= L && compact * 20 < wide * 19
     }

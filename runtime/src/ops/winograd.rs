@@ -163,9 +163,10 @@ pub(crate) fn suits(shape: &ConvShape) -> bool {
     let winograd = f.alpha * f.alpha * whole(oh.div_ceil(2) * ow.div_ceil(2));
     let direct = f.r
         * f.r
-        * match crate::isa::f32_kernel() {
-            crate::isa::F32Kernel::Avx2Fma if LanePack::compact_pays(shape) => LanePack::compact_positions(shape),
-            _ => whole((oh - 1) * shape.phase().1 + ow),
+        * if LanePack::compact_pays(shape) {
+            LanePack::compact_positions(shape)
+        } else {
+            whole((oh - 1) * shape.phase().1 + ow)
         };
     winograd * PRODUCTS_PAY.1 <= direct * PRODUCTS_PAY.0
 }
