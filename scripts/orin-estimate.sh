@@ -68,7 +68,7 @@ fi
 count() { # plan ops runs
     env PRL_OPS="$2" qemu-aarch64 -L /usr/aarch64-linux-gnu -cpu cortex-a76 -plugin "$W/insn-count.so" \
         -d plugin -D "$W/$1-$2-$3.txt" "$ARM" bench --plan "$W/$1" --sequence "$SEQ" --runs "$3" \
-        --template-runs 1 --top 0 --threads 1 >/dev/null
+        --template-runs 1 --warm-up 0 --top 0 --threads 1 >/dev/null
 }
 
 # The serial fractions, from this machine (the runtime's operators), before anything else runs:

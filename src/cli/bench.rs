@@ -29,6 +29,11 @@ pub struct BenchArgs {
     /// instructions of runs that differ in tracking steps only).
     #[arg(long, value_name = "N")]
     template_runs: Option<usize>,
+    /// Untimed runs of each stage before its timed ones: at least one, and until this many
+    /// seconds have passed (an idle core, a virtual one above all, takes some tens of
+    /// milliseconds to come up to speed; 0: one run, for instruction counts).
+    #[arg(long, value_name = "SECONDS", default_value_t = 0.25)]
+    warm_up: f64,
     /// A sequence folder whose first frame and box are used (default: UAV123 building4 if
     /// present, else a generated 1280x720 frame).
     #[arg(long, value_name = "DIR")]
@@ -207,11 +212,23 @@ fn input(seq: Option<&Path>) -> anyhow::Result<(Frame, BBox, String)> {
     Ok((frame, BBox { x: 600.0, y: 330.0, w: 80.0, h: 60.0 }, "generated 1280x720".into()))
 }
 
+/// Run `f` untimed at least once, and until `secs` seconds have passed.
+fn warm_up<E>(secs: f64, mut f: impl FnMut() -> Result<(), E>) -> Result<(), E> {
+    let t = Instant::now();
+    loop {
+        f()?;
+        if t.elapsed().as_secs_f64() >= secs {
+            return Ok(());
+        }
+    }
+}
+
 pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     anyhow::ensure!(a.runs >= 1, "--runs must be at least 1");
     let template_runs = a.template_runs.unwrap_or(a.runs);
     anyhow::ensure!(template_runs >= 1, "--template-runs must be at least 1");
     anyhow::ensure!((1..=64).contains(&a.targets), "--targets must be 1 to 64");
+    anyhow::ensure!((0.0..=60.0).contains(&a.warm_up), "--warm-up must be 0 to 60 seconds");
     let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     set_threads(threads);
     let (frame, init, frame_name) = input(a.sequence.as_deref())?;
@@ -225,20 +242,19 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let config = plan.manifest().tracker.clone();
     let mut tracker = Tracker::new(plan, config.clone());
     let (mut template, mut crop, mut search, mut post, mut step) = (vec![], vec![], vec![], vec![], vec![]);
-    let pb = indicatif::ProgressBar::new((a.runs + template_runs + 2) as u64);
-    for _ in 0..template_runs + 1 {
+    let pb = indicatif::ProgressBar::new((a.runs + template_runs) as u64);
+    warm_up(a.warm_up, || tracker.init(&frame, init))?;
+    for _ in 0..template_runs {
         tracker.init(&frame, init)?;
         template.push(tracker.last_timings().network);
         pb.inc(1);
     }
-    for i in 0..a.runs + 1 {
+    warm_up(a.warm_up, || tracker.track(&frame).map(|_| ()))?;
+    for _ in 0..a.runs {
         let t = Instant::now();
         tracker.track(&frame)?;
         let total = t.elapsed();
         pb.inc(1);
-        if i == 0 {
-            continue; // warm-up
-        }
         let s = tracker.last_timings();
         crop.push(s.crop);
         search.push(s.network);
@@ -246,7 +262,6 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         step.push(total);
     }
     pb.finish_and_clear();
-    template.remove(0);
     let targets = if a.targets > 1 {
         Some(time_targets(tracker.plan(), &frame, init, a.targets, threads, a.runs)?)
     } else {
