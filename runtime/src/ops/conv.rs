@@ -386,11 +386,7 @@ impl PackedConv {
         }
         let live: Vec<usize> = (0..taps).filter(|&t| nonzero[t]).collect();
         let blocks = shape.co.div_ceil(ROWS);
-        let lanes = match (LanePack::registers_for(shape.co), crate::isa::f32_kernel()) {
-            (Some(v), crate::isa::F32Kernel::Avx512) => Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, v))),
-            _ if LanePack::compact_pays(&shape) => Some(Arc::new(LanePack::new(weight, taps, &live, shape.co, 1))),
-            _ => None,
-        };
+        let lanes = LanePack::new(weight, taps, &live, &shape).map(Arc::new);
         // Written in order, block by block: the block's rows are read as 8 streams (not at all
         // where the lanes' packing serves).
         let mut packed = Vec::new();
@@ -699,6 +695,10 @@ mod tests {
             (ConvShape { ci: 16, h: 8, w: 8, co: 24, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, false),
             (ConvShape { ci: 20, h: 11, w: 9, co: 32, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 }, false),
             (ConvShape { ci: 16, h: 4, w: 4, co: 16, kh: 3, kw: 3, pad: [0; 4], stride: 1 }, true),
+            // And on AVX-512 those of 32 channels by 10 positions (a partial block) and of 48
+            // by 8 (zero taps left out).
+            (ConvShape { ci: 24, h: 9, w: 9, co: 40, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, false),
+            (ConvShape { ci: 16, h: 7, w: 7, co: 48, kh: 3, kw: 3, pad: [0; 4], stride: 1 }, true),
         ] {
             let n_in = s.ci * s.h * s.w;
             let taps = s.ci * s.kh * s.kw;
@@ -709,9 +709,13 @@ mod tests {
             let bias: Vec<f32> = (0..s.co).map(|o| o as f32 / 4.0).collect();
             let op = PackedConv::new(s.clone(), &weight, &bias).unwrap();
             assert_eq!(op.layout.taps.len(), if zero_taps { taps - taps.div_ceil(3) } else { taps });
-            if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx2Fma {
-                let compact = op.lanes.as_ref().is_some_and(|l| l.compact());
-                assert_eq!(compact, s.ci >= 16, "{s:?}: compact tiles chosen {compact}");
+            let compact = op.lanes.as_ref().is_some_and(|l| l.compact());
+            match crate::isa::f32_kernel() {
+                crate::isa::F32Kernel::Avx2Fma => assert_eq!(compact, s.ci >= 16, "{s:?}: compact tiles {compact}"),
+                crate::isa::F32Kernel::Avx512 => {
+                    assert_eq!(compact, s.ci >= 16 && s.co >= 32, "{s:?}: compact tiles {compact}")
+                }
+                _ => assert!(!compact, "{s:?}: compact tiles without AVX2"),
             }
             let x = tract_ndarray::Array4::from_shape_vec((2, s.ci, s.h, s.w), input.clone()).unwrap();
             let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tensor().into_tvalue()]).unwrap();

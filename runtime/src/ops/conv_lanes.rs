@@ -9,10 +9,12 @@
 //! (docs/performance.md). Every output is still its bias plus the sum over the taps in packing
 //! order, one rounding per multiply-add: the same bits as every other path.
 //!
-//! On AVX2 the same packing (one 16-channel line a tap) serves the compact tiles of small maps
-//! ([`LanePack::run_compact`]): 16 channels by 6 consecutive *output* positions, each position
-//! reading its own row of the padded input, so that a wide row's dropped columns are not
-//! computed at all.
+//! The same packing serves the compact tiles ([`LanePack::run_compact`]): `16·V` channels by
+//! consecutive *output* positions (AVX2: 16 by 6; AVX-512: 48 by 8, 32 by 10), each position
+//! reading its own row of the padded input through its own pointer, so that a wide row's
+//! dropped columns are not computed at all. Where they compute at least 5% fewer values
+//! ([`LanePack::tile_for`]) they run faster on both (AVX-512 Xeon: 2-16% on PRL-Track's
+//! layers, a few percent fewer multiply-adds a second than the wide tiles).
 
 use super::act::Activation;
 use super::conv::ConvShape;
@@ -37,6 +39,8 @@ pub(crate) struct Lanes<T> {
     v: usize,
     taps: usize,
     co: usize,
+    /// For the compact tiles ([`LanePack::run_compact`]) rather than the wide ones.
+    compact: bool,
     lines: Vec<Line<T>>,
 }
 
@@ -75,7 +79,7 @@ impl<T: Copy + Default> Lanes<T> {
                 }
             }
         }
-        Lanes { v, taps, co, lines }
+        Lanes { v, taps, co, compact: false, lines }
     }
 
     /// Channels per tile.
@@ -85,10 +89,10 @@ impl<T: Copy + Default> Lanes<T> {
 
     /// Positions per tile.
     pub(crate) fn positions(&self) -> usize {
-        match self.v {
-            3 => 8,
-            2 => 12,
-            _ => COMPACT_P,
+        match (self.compact, self.v) {
+            (true, v) => compact_tile_positions(v),
+            (false, 3) => 8,
+            _ => 12,
         }
     }
 
@@ -113,73 +117,123 @@ impl<T: Copy + Default> Lanes<T> {
 }
 
 impl LanePack {
-    /// Pack OIHW `weight` (`[co][taps]`) for `v` registers, keeping the taps `live` (`v = 1`:
-    /// the compact tiles of [`LanePack::run_compact`]).
-    pub(crate) fn new(weight: &[f32], taps: usize, live: &[usize], co: usize, v: usize) -> LanePack {
-        Lanes::pack(co, live.len(), v, |o, i| weight[o * taps + live[i]])
+    /// Pack OIHW `weight` (`[co][taps]`) for the tiles [`LanePack::tile_for`] chooses,
+    /// keeping the taps `live`; `None` where neither suits this machine.
+    pub(crate) fn new(weight: &[f32], taps: usize, live: &[usize], shape: &ConvShape) -> Option<LanePack> {
+        let (v, compact) = Self::tile_for(shape)?;
+        Some(Self::with_tile(weight, taps, live, shape.co, v, compact))
+    }
+
+    /// Pack OIHW `weight` (`[co][taps]`) for tiles of `v` registers, compact or wide, keeping
+    /// the taps `live`.
+    pub(crate) fn with_tile(
+        weight: &[f32],
+        taps: usize,
+        live: &[usize],
+        co: usize,
+        v: usize,
+        compact: bool,
+    ) -> LanePack {
+        let mut pack = Lanes::pack(co, live.len(), v, |o, i| weight[o * taps + live[i]]);
+        pack.compact = compact;
+        pack
+    }
+
+    /// The registers per tap (`16·v` channels) and whether the tiles are compact, for a
+    /// convolution of `shape` on this machine; `None` where [`super::conv_kernel`]'s tiles
+    /// (channels in rows, positions in lanes) serve.
+    ///
+    /// - AVX-512, 32 channels or more ([`Lanes::registers_for`]): the wide tiles of `16·v`
+    ///   channels, or the compact ones of `16·v` channels by 8 output positions where they
+    ///   compute at least 5% fewer values.
+    /// - AVX2: the compact tiles of 16 channels by 6 output positions where they compute at
+    ///   least 5% fewer values than [`super::conv_kernel`]'s tiles of 4 channels (half a block)
+    ///   by [`tile_positions`] wide positions.
+    ///
+    /// Compact tiles only for 16 input channels or more: on an AMD EPYC (Zen 2) both tiles run
+    /// alike per value, except on a layer of few input channels (PRL-Track's first, 3 channels,
+    /// 11x11, stride 2: 5-10% slower in compact tiles). Small maps, where a wide row's dropped
+    /// columns are a large share (PRL-Track's template layers 2-5: 13-25%), take the compact
+    /// tiles.
+    pub(crate) fn tile_for(shape: &ConvShape) -> Option<(usize, bool)> {
+        use crate::isa::F32Kernel;
+        let ((oh, ow), wp, co) = (shape.out(), shape.phase().1, shape.co);
+        let (v, wide_channels, wide_px) = match crate::isa::f32_kernel() {
+            F32Kernel::Avx512 => {
+                let v = Self::registers_for(co)?;
+                (v, L * v, if v == 3 { 8 } else { 12 })
+            }
+            F32Kernel::Avx2Fma => (1, ROWS / 2, tile_positions()),
+            _ => return None,
+        };
+        let wide = ((oh - 1) * wp + ow).div_ceil(wide_px) * wide_px * co.div_ceil(wide_channels) * wide_channels;
+        let px = compact_tile_positions(v);
+        let compact = (oh * ow).div_ceil(px) * px * co.div_ceil(L * v) * L * v;
+        let compact = co >= L && shape.ci >= L && compact * 20 < wide * 19;
+        (compact || v > 1).then_some((v, compact))
     }
 
     /// Whether [`super::conv::PackedConv`] runs a convolution of `shape` in the compact tiles
-    /// (16 channels by [`COMPACT_P`] output positions, no wide columns) on this machine: on
-    /// AVX2, where they compute at least 5% fewer values (output positions and channels,
-    /// rounded up to whole tiles) than [`super::conv_kernel`]'s tiles of 4 channels (half a
-    /// block) by [`tile_positions`] wide positions. Per value both run alike on an AMD EPYC
-    /// (Zen 2), except on a layer of few input channels (PRL-Track's first, 3 channels, 11x11,
-    /// stride 2: 5-10% slower in compact tiles), which keeps the wide ones. Small maps, where a
-    /// wide row's dropped columns are a large share (PRL-Track's template layers 3-5: 17-25%),
-    /// take the compact tiles.
+    /// on this machine ([`LanePack::tile_for`]).
     pub(crate) fn compact_pays(shape: &ConvShape) -> bool {
-        if crate::isa::f32_kernel() != crate::isa::F32Kernel::Avx2Fma {
-            return false;
-        }
-        let ((oh, ow), wp, co, half) = (shape.out(), shape.phase().1, shape.co, ROWS / 2);
-        let wide = ((oh - 1) * wp + ow).div_ceil(tile_positions()) * tile_positions() * co.div_ceil(half) * half;
-        let compact = Self::compact_positions(shape) * co.div_ceil(L) * L;
-        co >= L && shape.ci >= L && compact * 20 < wide * 19
+        Self::tile_for(shape).is_some_and(|(_, compact)| compact)
     }
 
     /// The output positions the compact tiles compute for `shape`: the plane's, rounded up to
     /// whole tiles.
     pub(crate) fn compact_positions(shape: &ConvShape) -> usize {
         let (oh, ow) = shape.out();
-        (oh * ow).div_ceil(COMPACT_P) * COMPACT_P
+        let px = Self::tile_for(shape).map_or(COMPACT_P, |(v, _)| compact_tile_positions(v));
+        (oh * ow).div_ceil(px) * px
     }
 
     /// Whether the packing is for the compact tiles ([`LanePack::run_compact`]).
     pub(crate) fn compact(&self) -> bool {
-        self.v == 1
+        self.compact
     }
 
-    /// [`LanePack::run`] for a `v = 1` packing, followed by `act`: tiles of 16 channels by
-    /// [`COMPACT_P`] consecutive output positions, each position reading its own row of
-    /// `padded`, so no wide column is computed. `padded` extends past the last tap of the last
-    /// position.
+    /// [`LanePack::run`] for a compact packing, followed by `act`: tiles of `16·v` channels by
+    /// [`LanePack::positions`] consecutive output positions, each position reading its own row
+    /// of `padded`, so no wide column is computed. `padded` extends past the last tap of the
+    /// last position.
     pub(crate) fn run_compact(&self, l: &Layout, padded: &[f32], bias: &[f32], act: Activation, out: &mut [f32]) {
-        let plane = l.oh * l.ow;
-        assert!(self.v == 1 && l.taps.len() == self.taps && plane > 0);
+        let (plane, oc, px) = (l.oh * l.ow, self.channels(), self.positions());
+        assert!(self.compact && l.taps.len() == self.taps && plane > 0);
         assert!(l.taps.iter().all(|&t| t + l.positions() <= padded.len()));
         assert!(out.len() == self.co * plane && bias.len() >= self.co);
         let dst = SyncPtr(out.as_mut_ptr());
-        for_each_item(self.co.div_ceil(L), plane.div_ceil(COMPACT_P), |b, first, count| {
+        for_each_item(self.co.div_ceil(oc), plane.div_ceil(px), |b, first, count| {
             let weights = self.block(b);
-            let mut sums = vec![0f32; count * L * COMPACT_P];
-            match crate::isa::f32_kernel() {
+            let mut sums = vec![0f32; count * oc * px];
+            #[cfg(target_arch = "x86_64")]
+            let offsets = compact_offsets(l, first * px, count * px);
+            match (self.v, crate::isa::f32_kernel()) {
                 // SAFETY: the CPU has AVX2 and FMA; every read stays in `padded` (asserted
-                // above: every tap from any output position) and `weights`.
+                // above: every tap from any output position's offset) and `weights`.
                 #[cfg(target_arch = "x86_64")]
-                crate::isa::F32Kernel::Avx2Fma | crate::isa::F32Kernel::Avx512 => unsafe {
-                    compact_avx2(l, padded, weights, first, &mut sums)
+                (1, crate::isa::F32Kernel::Avx2Fma | crate::isa::F32Kernel::Avx512) => unsafe {
+                    compact_avx2(l, padded, weights, &offsets, &mut sums)
                 },
-                _ => compact_tiles(l, padded, weights, first, &mut sums),
+                // SAFETY: the CPU has AVX-512F; as above.
+                #[cfg(target_arch = "x86_64")]
+                (3, crate::isa::F32Kernel::Avx512) => unsafe {
+                    compact_avx512::<3, 8>(l, padded, weights, &offsets, &mut sums)
+                },
+                // SAFETY: as above.
+                #[cfg(target_arch = "x86_64")]
+                (2, crate::isa::F32Kernel::Avx512) => unsafe {
+                    compact_avx512::<2, 10>(l, padded, weights, &offsets, &mut sums)
+                },
+                _ => compact_tiles(l, oc, px, padded, weights, first, &mut sums),
             }
-            let rows = L.min(self.co - b * L);
-            for (q, s) in sums.chunks_exact(L).enumerate() {
-                let at = first * COMPACT_P + q;
+            let rows = oc.min(self.co - b * oc);
+            for (q, s) in sums.chunks_exact(oc).enumerate() {
+                let at = first * px + q;
                 if at >= plane {
                     break;
                 }
                 for (r, s) in s[..rows].iter().enumerate() {
-                    let o = b * L + r;
+                    let o = b * oc + r;
                     // SAFETY: `o < co` and `at < plane`, within `out` (asserted); each
                     // (channel, position) belongs to one item only.
                     unsafe { *dst.at(o * plane + at) = act.apply(s + bias[o]) };
@@ -277,8 +331,18 @@ fn tiles(l: &Layout, oc: usize, px: usize, padded: &[f32], weights: &[f32], firs
     }
 }
 
-/// Output positions per compact tile.
+/// Output positions per AVX2 compact tile (16 channels).
 pub(crate) const COMPACT_P: usize = 6;
+
+/// Output positions per compact tile of `v` registers: 6 on AVX2 (one register of 16
+/// channels: 12 accumulators of 8 lanes), 8 on AVX-512 (16 or 24 accumulators).
+fn compact_tile_positions(v: usize) -> usize {
+    match v {
+        1 => COMPACT_P,
+        2 => 10,
+        _ => 8,
+    }
+}
 
 /// Where output position `at` (of `oh·ow`, clamped to the last) reads tap 0 in the padded input.
 fn compact_offset(l: &Layout, at: usize) -> usize {
@@ -286,13 +350,33 @@ fn compact_offset(l: &Layout, at: usize) -> usize {
     at / l.ow * l.wp + at % l.ow
 }
 
-/// The portable form of the compact tiles (the reference the AVX2 one is tested against): for
-/// tiles `first..` (as many as `sums` holds), `sums[tile][position][channel]`, fused
-/// multiply-adds in tap order from zero; positions past the plane repeat its last.
-fn compact_tiles(l: &Layout, padded: &[f32], weights: &[f32], first: usize, sums: &mut [f32]) {
-    for (i, s) in sums.chunks_exact_mut(L).enumerate() {
-        let base = compact_offset(l, first * COMPACT_P + i);
-        for (&t, w) in l.taps.iter().zip(weights.chunks_exact(L)) {
+/// [`compact_offset`] of the `n` positions from `from`, stepping through the rows (one division
+/// for the lot: the kernels' tap passes would otherwise divide once per position and pass, a
+/// tenth of a small tile's time on an AVX-512 Xeon).
+#[cfg(target_arch = "x86_64")]
+fn compact_offsets(l: &Layout, from: usize, n: usize) -> Vec<usize> {
+    let last = compact_offset(l, usize::MAX);
+    let (mut y, mut x) = (from / l.ow, from % l.ow);
+    (0..n)
+        .map(|_| {
+            let at = if y < l.oh { y * l.wp + x } else { last };
+            x += 1;
+            if x == l.ow {
+                (y, x) = (y + 1, 0);
+            }
+            at
+        })
+        .collect()
+}
+
+/// The portable form of the compact tiles (the reference the SIMD ones are tested against):
+/// for tiles of `oc` channels by `px` positions from tile `first` (as many as `sums` holds),
+/// `sums[tile][position][channel]`, fused multiply-adds in tap order from zero; positions past
+/// the plane repeat its last.
+fn compact_tiles(l: &Layout, oc: usize, px: usize, padded: &[f32], weights: &[f32], first: usize, sums: &mut [f32]) {
+    for (i, s) in sums.chunks_exact_mut(oc).enumerate() {
+        let base = compact_offset(l, first * px + i);
+        for (&t, w) in l.taps.iter().zip(weights.chunks_exact(oc)) {
             let x = padded[base + t];
             for (s, &w) in s.iter_mut().zip(w) {
                 *s = x.mul_add(w, *s);
@@ -311,17 +395,17 @@ const COMPACT_CHUNK: usize = 256;
 /// accumulators, two weights and a broadcast keep to the 16 registers.
 ///
 /// # Safety
-/// The CPU has AVX2 and FMA; every tap from every output position is within `padded`;
-/// `weights` holds 16 values per tap, 32-byte aligned (`Line`).
+/// The CPU has AVX2 and FMA; every tap from every offset of `offsets` (6 per tile of `sums`)
+/// is within `padded`; `weights` holds 16 values per tap, 32-byte aligned (`Line`).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn compact_avx2(l: &Layout, padded: &[f32], weights: &[f32], first: usize, sums: &mut [f32]) {
+unsafe fn compact_avx2(l: &Layout, padded: &[f32], weights: &[f32], offsets: &[usize], sums: &mut [f32]) {
     use std::arch::x86_64::*;
     for (c, taps) in l.taps.chunks(COMPACT_CHUNK).enumerate() {
-        for (k, tile) in sums.chunks_exact_mut(L * COMPACT_P).enumerate() {
+        for (tile, at) in sums.chunks_exact_mut(L * COMPACT_P).zip(offsets.chunks_exact(COMPACT_P)) {
             let p: [*const f32; COMPACT_P] = std::array::from_fn(|q| {
                 // SAFETY: an offset within `padded` (every output position's tap 0 is).
-                unsafe { padded.as_ptr().add(compact_offset(l, (first + k) * COMPACT_P + q)) }
+                unsafe { padded.as_ptr().add(at[q]) }
             });
             let s = tile.as_mut_ptr();
             // SAFETY (reads and writes): `tile` holds 6 x 16 values; the caller's promises
@@ -375,6 +459,60 @@ unsafe fn compact_avx2(l: &Layout, padded: &[f32], weights: &[f32], first: usize
                 );
                 for (v, a) in a.iter().enumerate() {
                     _mm256_storeu_ps(s.add(8 * v), *a);
+                }
+            }
+        }
+    }
+}
+
+/// [`compact_tiles`] on AVX-512: `16·V` channels by 8 output positions, `8·V` accumulators,
+/// each position reading through its own pointer; the taps taken `CHUNK` at a time over every
+/// tile, the partial sums kept in `sums`.
+///
+/// # Safety
+/// The CPU has AVX-512F; every tap from every offset of `offsets` (8 per tile of `sums`) is
+/// within `padded`; `weights` holds `16·V` values per tap, 64-byte aligned (`Line`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn compact_avx512<const V: usize, const P: usize>(
+    l: &Layout,
+    padded: &[f32],
+    weights: &[f32],
+    offsets: &[usize],
+    sums: &mut [f32],
+) {
+    use std::arch::x86_64::*;
+    let oc = L * V;
+    for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
+        for (tile, at) in sums.chunks_exact_mut(oc * P).zip(offsets.chunks_exact(P)) {
+            // SAFETY (pointer reads and writes): the caller's promises for `padded` (every tap
+            // from each position's offset) and `weights`; `tile` holds `P · oc` values.
+            unsafe {
+                let p: [*const f32; P] = std::array::from_fn(|q| padded.as_ptr().add(at[q]));
+                let s = tile.as_mut_ptr();
+                let mut a = [[_mm512_setzero_ps(); V]; P];
+                if c > 0 {
+                    for (q, a) in a.iter_mut().enumerate() {
+                        for (v, a) in a.iter_mut().enumerate() {
+                            *a = _mm512_loadu_ps(s.add(oc * q + L * v));
+                        }
+                    }
+                }
+                let mut w = weights.as_ptr().add(c * CHUNK * oc);
+                for &t in taps {
+                    let wv: [__m512; V] = std::array::from_fn(|v| _mm512_load_ps(w.add(L * v)));
+                    for (a, p) in a.iter_mut().zip(&p) {
+                        let b = _mm512_set1_ps(*p.add(t));
+                        for (a, &w) in a.iter_mut().zip(&wv) {
+                            *a = _mm512_fmadd_ps(b, w, *a);
+                        }
+                    }
+                    w = w.add(oc);
+                }
+                for (q, a) in a.iter().enumerate() {
+                    for (v, a) in a.iter().enumerate() {
+                        _mm512_storeu_ps(s.add(oc * q + L * v), *a);
+                    }
                 }
             }
         }
@@ -437,60 +575,72 @@ mod tests {
     use super::*;
     use crate::isa::F32Kernel;
 
-    /// The compact tiles (AVX2 where the CPU has it) give the bits of the portable compact
-    /// tiles and of the wide ones (every path sums in tap order, one rounding per multiply-add),
-    /// and the convolution's sums: partial channel blocks, several tap passes, maps smaller
-    /// than a tile.
+    /// The compact tiles (AVX2's of one register, AVX-512's of two and three, where the CPU
+    /// has them) give the bits of the portable compact tiles and of the wide ones (every path
+    /// sums in tap order, one rounding per multiply-add), and the convolution's sums: partial
+    /// channel blocks, several tap passes, maps smaller than a tile.
     #[test]
     fn compact_tiles_equal_the_portable_and_the_wide_ones() {
         if !matches!(crate::isa::f32_kernel(), F32Kernel::Avx2Fma | F32Kernel::Avx512) {
             println!("NOTE: no AVX2 here (or PRL_ISA caps it): the compact tiles run their portable form only");
+        } else if crate::isa::f32_kernel() != F32Kernel::Avx512 {
+            println!("NOTE: no AVX-512 here (or PRL_ISA caps it): the compact tiles of 2 and 3 registers run their portable form only");
         }
-        for (ci, h, w, k, co) in [(30, 11, 23, 3, 40), (40, 12, 12, 3, 16), (7, 5, 6, 5, 48), (3, 4, 4, 3, 33)] {
+        for (ci, h, w, k, co) in
+            [(30, 11, 23, 3, 40), (40, 12, 12, 3, 16), (7, 5, 6, 5, 48), (3, 4, 4, 3, 33), (20, 9, 9, 3, 96)]
+        {
             let l = Layout::dense(ci, h, w, k);
             let taps = l.taps.len();
             let padded: Vec<f32> = (0..ci * h * w + 64).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
             let weight: Vec<f32> = (0..co * taps).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
             let live: Vec<usize> = (0..taps).collect();
-            let pack = LanePack::new(&weight, taps, &live, co, 1);
-            assert!(pack.compact() && pack.positions() == COMPACT_P);
             let bias: Vec<f32> = (0..co).map(|o| o as f32 / 8.0).collect();
             let plane = l.oh * l.ow;
-            let mut got = vec![0f32; co * plane];
-            pack.run_compact(&l, &padded, &bias, Activation::NONE, &mut got);
-            let tiles_n = plane.div_ceil(COMPACT_P);
-            let wide_n = l.positions().div_ceil(COMPACT_P);
-            for b in 0..co.div_ceil(L) {
-                let block = &pack.values()[b * taps * L..(b + 1) * taps * L];
-                let mut sums = vec![0f32; tiles_n * L * COMPACT_P];
-                compact_tiles(&l, &padded, block, 0, &mut sums);
-                let mut wide = vec![0f32; wide_n * L * COMPACT_P];
-                tiles(&l, L, COMPACT_P, &padded, block, 0, &mut wide);
-                for (s, at) in outputs(&l, &wide, L, COMPACT_P, 0) {
-                    for (r, s) in s.iter().enumerate().take(co - b * L) {
-                        let o = b * L + r;
-                        let want = s + bias[o];
-                        assert!(sums[at * L + r] + bias[o] == want, "{co} channels: compact and wide sums differ");
-                        assert!(got[o * plane + at] == want, "{co} channels, output {o} at {at}: dispatched differs");
+            for v in [1, 2, 3] {
+                let pack = LanePack::with_tile(&weight, taps, &live, co, v, true);
+                let (oc, px) = (pack.channels(), pack.positions());
+                assert!(pack.compact() && px == compact_tile_positions(v));
+                let mut got = vec![0f32; co * plane];
+                pack.run_compact(&l, &padded, &bias, Activation::NONE, &mut got);
+                let (tiles_n, wide_n) = (plane.div_ceil(px), l.positions().div_ceil(px));
+                for b in 0..co.div_ceil(oc) {
+                    let block = pack.block(b);
+                    let mut sums = vec![0f32; tiles_n * oc * px];
+                    compact_tiles(&l, oc, px, &padded, block, 0, &mut sums);
+                    let mut wide = vec![0f32; wide_n * oc * px];
+                    tiles(&l, oc, px, &padded, block, 0, &mut wide);
+                    for (s, at) in outputs(&l, &wide, oc, px, 0) {
+                        for (r, s) in s.iter().enumerate().take(co - b * oc) {
+                            let o = b * oc + r;
+                            let want = s + bias[o];
+                            assert!(
+                                sums[at * oc + r] + bias[o] == want,
+                                "{co} channels, {v}: compact and wide sums differ"
+                            );
+                            assert!(
+                                got[o * plane + at] == want,
+                                "{co} channels, {v}: output {o} at {at}: dispatched differs"
+                            );
+                        }
                     }
                 }
-            }
-            // With an activation: applied to every output, as the wide tiles' callers do.
-            let act = Activation { lo: -1.0, hi: 2.0, hard_swish: true };
-            let mut with_act = vec![0f32; co * plane];
-            pack.run_compact(&l, &padded, &bias, act, &mut with_act);
-            let mut want = got.clone();
-            act.apply_all(&mut want);
-            assert!(with_act == want, "{co} channels: the activation differs");
-            for o in [0, co - 1] {
-                for at in [0, plane - 1] {
-                    let (y, x) = (at / l.ow, at % l.ow);
-                    let mut acc = bias[o] as f64;
-                    for (tap, &t) in l.taps.iter().enumerate() {
-                        acc += padded[y * l.wp + x + t] as f64 * weight[o * taps + tap] as f64;
+                // With an activation: applied to every output, as the wide tiles' callers do.
+                let act = Activation { lo: -1.0, hi: 2.0, hard_swish: true };
+                let mut with_act = vec![0f32; co * plane];
+                pack.run_compact(&l, &padded, &bias, act, &mut with_act);
+                let mut want = got.clone();
+                act.apply_all(&mut want);
+                assert!(with_act == want, "{co} channels, {v}: the activation differs");
+                for o in [0, co - 1] {
+                    for at in [0, plane - 1] {
+                        let (y, x) = (at / l.ow, at % l.ow);
+                        let mut acc = bias[o] as f64;
+                        for (tap, &t) in l.taps.iter().enumerate() {
+                            acc += padded[y * l.wp + x + t] as f64 * weight[o * taps + tap] as f64;
+                        }
+                        let g = got[o * plane + at] as f64;
+                        assert!((g - acc).abs() < 1e-3, "{co} channels, output {o} at {at}: {g} against {acc}");
                     }
-                    let g = got[o * plane + at] as f64;
-                    assert!((g - acc).abs() < 1e-3, "{co} channels, output {o} at {at}: {g} against {acc}");
                 }
             }
         }
@@ -511,7 +661,7 @@ mod tests {
             let weight: Vec<f32> = (0..co * taps).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
             let live: Vec<usize> = (0..taps).collect();
             let v = LanePack::registers_for(co).unwrap();
-            let pack = LanePack::new(&weight, taps, &live, co, v);
+            let pack = LanePack::with_tile(&weight, taps, &live, co, v, false);
             let bias: Vec<f32> = (0..co).map(|o| o as f32 / 8.0).collect();
             let mut got = vec![0f32; co * l.oh * l.ow];
             pack.run(&l, &padded, &bias, &mut got);

@@ -151,7 +151,8 @@ fn combine<'a>(dst: &mut [f32], coef: &[f32], src: impl Fn(usize) -> &'a [f32]) 
 /// direct form's multiply-adds as the kernels run them: `α²` per tile against `r²` per wide
 /// position of [`super::PackedConv`] (`(oh − 1)·Wp + ow`, the padded rows' dropped columns
 /// included), each rounded up to whole tiles of the kernel; or, where `PackedConv` runs the
-/// layer in compact tiles (AVX2, small maps), `r²` per output position, rounded up to them.
+/// layer in compact tiles (AVX2 or AVX-512, where they pay), `r²` per output position,
+/// rounded up to them.
 pub(crate) fn suits(shape: &ConvShape) -> bool {
     let Some(f) = form(shape.kh) else { return false };
     if shape.kw != shape.kh || shape.stride != 1 || shape.ci < 32 || shape.co < 32 {
