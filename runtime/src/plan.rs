@@ -33,13 +33,22 @@ impl Runnable {
         Runnable { serial: largest < SPLIT_MACS, plan }
     }
 
-    /// `f` with tract's executor for this graph: the calling thread alone when `serial`.
-    fn scope<R>(&self, f: impl FnOnce() -> R) -> R {
-        use tract_linalg::multithread::{multithread_tract_scope, Executor};
+    /// `f` with tract's executor for this graph: the calling thread alone when `serial`; else,
+    /// where the executor is a pool the calling thread is not part of, on one of the pool's
+    /// threads while the pool's other threads spin ([`spin_while`], unless [`spin`] says not),
+    /// so that every operator split over the pool starts on all its threads at once.
+    fn scope<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        use tract_linalg::multithread::{current_tract_executor, multithread_tract_scope, Executor};
         if self.serial {
-            multithread_tract_scope(Executor::SingleThread, f)
-        } else {
-            f()
+            return multithread_tract_scope(Executor::SingleThread, f);
+        }
+        match current_tract_executor() {
+            Executor::MultiThread(pool) if pool.current_thread_index().is_none() => {
+                let executor = Executor::MultiThread(pool.clone());
+                let run = move || multithread_tract_scope(executor, f);
+                pool.install(move || if spin() { spin_while(run) } else { run() })
+            }
+            _ => f(),
         }
     }
 
@@ -50,6 +59,50 @@ impl Runnable {
     fn model(&self) -> &TypedModel {
         self.plan.model()
     }
+}
+
+/// Whether a split graph's run keeps the pool's other threads spinning ([`spin_while`]): yes,
+/// unless the environment sets `PRL_SPIN=off` (or `0`), which saves their cores' power at
+/// some speed (on the camera, say, where the step has time to spare).
+fn spin() -> bool {
+    static SPIN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *SPIN.get_or_init(|| !matches!(std::env::var("PRL_SPIN").as_deref(), Ok("off" | "0")))
+}
+
+/// `f` on the calling thread, one of a rayon pool's, while the pool's other threads look for
+/// work without sleeping until `f` returns (as ONNX Runtime's threads spin between operators).
+///
+/// A pool thread that found nothing to do goes to sleep within microseconds, and waking it
+/// took 20-40 µs on a 2-vCPU VM (an idle virtual CPU is halted by the host), then as long
+/// again for the first thread to learn that the second's share was done: a split of two
+/// 100 µs halves took 165-180 µs, against 101 µs with the other thread spinning (measured
+/// with rayon alone). PRL-Track's search graph splits about a hundred operators a frame, many
+/// of them 0.1-1 ms long. The cost: the pool's other threads keep their cores busy for as long
+/// as `f` runs (one graph run), not between runs.
+fn spin_while<R>(f: impl FnOnce() -> R) -> R {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    /// Ends the spinning however `f` ends.
+    struct Done(Arc<AtomicBool>);
+    impl Drop for Done {
+        fn drop(&mut self) {
+            self.0.store(true, Ordering::Release);
+        }
+    }
+    let done = Done(Arc::new(AtomicBool::new(false)));
+    let (flag, me) = (done.0.clone(), rayon::current_thread_index());
+    rayon::spawn_broadcast(move |ctx| {
+        // The calling thread runs `f`; its own copy of this job (which it may pick up while
+        // waiting on a split) returns at once.
+        if Some(ctx.index()) == me {
+            return;
+        }
+        while !flag.load(Ordering::Acquire) {
+            if rayon::yield_now() != Some(rayon::Yield::Executed) {
+                std::hint::spin_loop();
+            }
+        }
+    });
+    f()
 }
 
 /// A loaded, optimised plan. Cloning it is cheap (the optimised graphs are shared), so that
@@ -448,4 +501,37 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope, winograd: 
     crate::catch_quietly(optimise)
         .ok_or_else(|| bad("tract cannot optimise it: the graph is malformed".into()))?
         .map_err(tract_err)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::spin_while;
+
+    /// `spin_while` returns what `f` returns, with the pool's other thread taking a share of
+    /// `f`'s splits while it spins, and stops the spinning when `f` returns or panics: the
+    /// pool then runs a job on every thread (a thread still spinning would never take it).
+    #[test]
+    fn spinning_ends_with_the_run() {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+        let threads = std::sync::Mutex::new(std::collections::BTreeSet::new());
+        let sum = pool.install(|| {
+            spin_while(|| {
+                use rayon::prelude::*;
+                (0..64u64)
+                    .into_par_iter()
+                    .map(|i| {
+                        threads.lock().unwrap().insert(rayon::current_thread_index());
+                        std::thread::sleep(std::time::Duration::from_millis(1));
+                        i
+                    })
+                    .sum::<u64>()
+            })
+        });
+        assert_eq!(sum, 63 * 64 / 2);
+        assert_eq!(threads.lock().unwrap().len(), 2, "both threads took a share");
+        assert_eq!(pool.broadcast(|c| c.index()), vec![0, 1]);
+        let panicked = pool.install(|| std::panic::catch_unwind(|| spin_while(|| panic!("a failing run"))));
+        assert!(panicked.is_err());
+        assert_eq!(pool.broadcast(|c| c.index()), vec![0, 1], "the spinning ended with the panic");
+    }
 }

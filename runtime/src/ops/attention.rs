@@ -12,7 +12,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::einsum::EinSum;
 use tract_nnef::tract_core::ops::nn::{Softmax, SoftmaxKind};
 
-use super::{output_tensor, par_chunks};
+use super::{output_tensor_written, par_chunks};
 
 /// `scores[a,m,b,n] = Σ_k q[0,a,m,k]·keys[b,a,n,k]` (`camk,bank->ambn`).
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -50,21 +50,25 @@ impl EvalOp for AttnScores {
         let row = b * n;
         // Key rows padded to whole vectors of 16.
         let ldk = row.next_multiple_of(NR);
-        let out = output_tensor(&[heads, m, b, n], |out: &mut [f32]| {
-            par_chunks(out, m * row, |a, out| {
-                // This head's keys transposed: [k][(b, n)], so that the scores are `q · kt`.
-                let mut kt = vec![0f32; p * ldk];
-                for bi in 0..b {
-                    for j in 0..n {
-                        for k in 0..p {
-                            kt[k * ldk + bi * n + j] = ks[((bi * heads + a) * n + j) * p + k];
+        // SAFETY: the chunks of `m·row` cover the output, and `gemm` writes every value of
+        // its chunk (`m` rows of `row`).
+        let out = unsafe {
+            output_tensor_written(&[heads, m, b, n], |out: &mut [f32]| {
+                par_chunks(out, m * row, |a, out| {
+                    // This head's keys transposed: [k][(b, n)], so that the scores are `q · kt`.
+                    let mut kt = vec![0f32; p * ldk];
+                    for bi in 0..b {
+                        for j in 0..n {
+                            for k in 0..p {
+                                kt[k * ldk + bi * n + j] = ks[((bi * heads + a) * n + j) * p + k];
+                            }
                         }
                     }
-                }
-                gemm(out, row, &qs[a * m * p..(a + 1) * m * p], p, &kt, ldk);
-            });
-            Ok(())
-        })?;
+                    gemm(out, row, &qs[a * m * p..(a + 1) * m * p], p, &kt, ldk);
+                });
+                Ok(())
+            })?
+        };
         Ok(tvec!(out.into_tvalue()))
     }
 }
@@ -103,15 +107,18 @@ impl EvalOp for AttnMix {
             }
             gemm(out, n, &ps[a * m * rows..(a + 1) * m * rows], rows, &va, ld);
         });
-        let out = output_tensor(&[m, heads, n], |out: &mut [f32]| {
-            for a in 0..heads {
-                for mi in 0..m {
-                    out[(mi * heads + a) * n..(mi * heads + a + 1) * n]
-                        .copy_from_slice(&per_head[(a * m + mi) * n..(a * m + mi + 1) * n]);
+        // SAFETY: the loops copy a value to every position `(mi·heads + a)·n + j`.
+        let out = unsafe {
+            output_tensor_written(&[m, heads, n], |out: &mut [f32]| {
+                for a in 0..heads {
+                    for mi in 0..m {
+                        out[(mi * heads + a) * n..(mi * heads + a + 1) * n]
+                            .copy_from_slice(&per_head[(a * m + mi) * n..(a * m + mi + 1) * n]);
+                    }
                 }
-            }
-            Ok(())
-        })?;
+                Ok(())
+            })?
+        };
         Ok(tvec!(out.into_tvalue()))
     }
 }
