@@ -361,6 +361,12 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         "PackedQConv" if info.contains("on AMX") => "amx".to_string(),
         "PackedQConv" if info.contains("VNNI") => "vnni".to_string(),
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
+        // 3 x 3 windows of stride 2 in AVX-512 for f32 (u8 as below).
+        "ChannelMaxPool"
+            if info.contains("3x3 window, stride 2") && crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 =>
+        {
+            "avx512 (f32), avx2 (u8)".to_string()
+        }
         // Compiled for AVX2 on every x86 kernel of the table but the portable one.
         "ChannelMaxPool"
             if cfg!(target_arch = "x86_64") && crate::isa::f32_kernel() != crate::isa::F32Kernel::Portable =>
