@@ -79,6 +79,11 @@ fn spin() -> bool {
 /// with rayon alone). PRL-Track's search graph splits about a hundred operators a frame, many
 /// of them 0.1-1 ms long. The cost: the pool's other threads keep their cores busy for as long
 /// as `f` runs (one graph run), not between runs.
+///
+/// The spinning is a short job ([`spin_once`]) that looks for work once and queues itself
+/// again, never a loop until `f` ends: a pool thread waiting on a split runs whatever job it
+/// finds, and a job that looped until the run's end there would hold up the split the run
+/// waits on (it deadlocked so).
 fn spin_while<R>(f: impl FnOnce() -> R) -> R {
     use std::sync::atomic::{AtomicBool, Ordering};
     /// Ends the spinning however `f` ends.
@@ -89,20 +94,29 @@ fn spin_while<R>(f: impl FnOnce() -> R) -> R {
         }
     }
     let done = Done(Arc::new(AtomicBool::new(false)));
-    let (flag, me) = (done.0.clone(), rayon::current_thread_index());
-    rayon::spawn_broadcast(move |ctx| {
-        // The calling thread runs `f`; its own copy of this job (which it may pick up while
-        // waiting on a split) returns at once.
-        if Some(ctx.index()) == me {
-            return;
-        }
-        while !flag.load(Ordering::Acquire) {
-            if rayon::yield_now() != Some(rayon::Yield::Executed) {
-                std::hint::spin_loop();
+    if let Some(me) = rayon::current_thread_index() {
+        let flag = done.0.clone();
+        rayon::spawn_broadcast(move |ctx| {
+            if ctx.index() != me {
+                spin_once(flag.clone(), me);
             }
-        }
-    });
+        });
+    }
     f()
+}
+
+/// One turn of [`spin_while`]'s spinning on a pool thread other than the run's (`me`): unless
+/// the run is `done`, run one job found elsewhere (or pause for a moment), then queue the next
+/// turn on this thread's own deque. Where the run's thread takes the turn (stealing it while it
+/// waits on a split) it only queues it again, for the others to take back.
+fn spin_once(done: Arc<std::sync::atomic::AtomicBool>, me: usize) {
+    if done.load(std::sync::atomic::Ordering::Acquire) {
+        return;
+    }
+    if rayon::current_thread_index() != Some(me) && rayon::yield_now() != Some(rayon::Yield::Executed) {
+        std::hint::spin_loop();
+    }
+    rayon::spawn(move || spin_once(done, me));
 }
 
 /// A loaded, optimised plan. Cloning it is cheap (the optimised graphs are shared), so that
@@ -533,5 +547,44 @@ mod tests {
         let panicked = pool.install(|| std::panic::catch_unwind(|| spin_while(|| panic!("a failing run"))));
         assert!(panicked.is_err());
         assert_eq!(pool.broadcast(|c| c.index()), vec![0, 1], "the spinning ended with the panic");
+    }
+
+    /// Runs one after another, each of nested splits of uneven work (the shape of a graph's
+    /// operators: a pool thread that waits on a split runs whatever job it finds, the spinning
+    /// of the next run included), finish: the spinning never holds up a split it is nested in.
+    /// (A spinner that looped until its run ended deadlocked here, as it had in `prl bench`.)
+    #[test]
+    fn nested_splits_finish_while_the_threads_spin() {
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+            let mut total = 0u64;
+            for run in 0..300u64 {
+                total += pool.install(|| {
+                    spin_while(|| {
+                        use rayon::prelude::*;
+                        (0..8u64)
+                            .into_par_iter()
+                            .map(|i| {
+                                (0..4u64)
+                                    .into_par_iter()
+                                    .map(|j| {
+                                        let t = std::time::Instant::now();
+                                        let us = (run + i * 7 + j * 3) % 40;
+                                        while t.elapsed() < std::time::Duration::from_micros(us) {
+                                            std::hint::spin_loop();
+                                        }
+                                        1
+                                    })
+                                    .sum::<u64>()
+                            })
+                            .sum::<u64>()
+                    })
+                });
+            }
+            tx.send(total).unwrap();
+        });
+        let total = rx.recv_timeout(std::time::Duration::from_secs(60)).expect("the runs deadlocked");
+        assert_eq!(total, 300 * 32);
     }
 }
