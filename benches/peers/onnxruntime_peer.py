@@ -138,6 +138,56 @@ def main():
             shutil.rmtree(work, ignore_errors=True)
 
 
+def cpu_facts():
+    """The CPU's model name and whether it has AMX (Linux's /proc/cpuinfo; empty elsewhere)."""
+    name, amx = "unknown CPU", False
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name" and name == "unknown CPU":
+                    name = value.strip()
+                elif key.strip() == "flags":
+                    amx = amx or "amx_int8" in value.split()
+    except OSError:
+        pass
+    return name, amx
+
+
+def kernels(args, plan, work, tag):
+    """Which kernel each replaced operator of `plan` runs (`prl bench`'s per-node profiles of
+    both graphs), grouped by operator, and what the runtime may use."""
+    j = os.path.join(work, f"kernels-{tag}.json")
+    sh([args.prl, "bench", "--plan", plan, "--runs", "1", "--warm-up", "0", "--top", "100000", "--json", j])
+    with open(j) as f:
+        r = json.load(f)
+    counts = {}
+    for o in r["top_ops"] + r["template_ops"]:
+        if o["kernel"] and o["kernel"] != "-":
+            by_op = counts.setdefault(o["op"], {})
+            by_op[o["kernel"]] = by_op.get(o["kernel"], 0) + 1
+    return r["isa"], counts
+
+
+def print_kernels(args, plan, work, report):
+    name, cpu_amx = cpu_facts()
+    plans = [(plan, "fp32")] + ([(args.int8_plan, "int8")] if args.int8_plan else [])
+    found = {tag: kernels(args, p, work, tag) for p, tag in plans}
+    isa = next(iter(found.values()))[0]
+    used = any("amx" in k for _, c in found.values() for by_op in c.values() for k in by_op)
+    tract = os.environ.get("TRACT_CPU_ISA", "")
+    amx = ("on" if used else "off") + (" (the CPU has it" if cpu_amx else " (the CPU has none") + (
+        f"; TRACT_CPU_ISA={tract})" if tract else ")")
+    print(f"CPU: {name}; runtime kernels may use: {isa}; AMX: {amx}")
+    report["cpu"], report["isa"], report["amx"] = name, isa, amx
+    report["kernels"] = {}
+    for tag, (_, counts) in found.items():
+        line = "; ".join(f"{op} " + ", ".join(f"{k} x{n}" for k, n in sorted(by.items()))
+                         for op, by in sorted(counts.items()))
+        print(f"  {tag} plan, kernel per replaced operator: {line}")
+        report["kernels"][tag] = counts
+
+
 def run(args, work):
     model, plan = model_and_plan(args, work)
     tdir = os.path.join(work, "tensors")
@@ -150,6 +200,7 @@ def run(args, work):
 
     report = {"model": model, "plan": plan, "onnxruntime": ort.__version__, "rounds": args.rounds,
               "runs": args.runs, "results": []}
+    print_kernels(args, plan, work, report)
     rows = []
     for threads in [int(t) for t in args.threads.split(",")]:
         search = session(os.path.join(model, "search.onnx"), threads)

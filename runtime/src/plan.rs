@@ -85,6 +85,12 @@ fn spin() -> bool {
 /// finds, and a job that looped until the run's end there would hold up the split the run
 /// waits on (it deadlocked so).
 fn spin_while<R>(f: impl FnOnce() -> R) -> R {
+    spin_until_set(Arc::default(), f)
+}
+
+/// [`spin_while`], the run's end marked by setting `done` (each queued turn holds a clone: the
+/// tests watch them go).
+fn spin_until_set<R>(done: Arc<std::sync::atomic::AtomicBool>, f: impl FnOnce() -> R) -> R {
     use std::sync::atomic::{AtomicBool, Ordering};
     /// Ends the spinning however `f` ends.
     struct Done(Arc<AtomicBool>);
@@ -93,7 +99,7 @@ fn spin_while<R>(f: impl FnOnce() -> R) -> R {
             self.0.store(true, Ordering::Release);
         }
     }
-    let done = Done(Arc::new(AtomicBool::new(false)));
+    let done = Done(done);
     if let Some(me) = rayon::current_thread_index() {
         let flag = done.0.clone();
         rayon::spawn_broadcast(move |ctx| {
@@ -521,15 +527,26 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope, winograd: 
 mod tests {
     use super::spin_while;
 
+    /// The turns still queued for a run's spinning (each holds a clone of its flag) are gone
+    /// within a second.
+    fn turns_end(flag: &std::sync::Arc<std::sync::atomic::AtomicBool>) -> bool {
+        let t = std::time::Instant::now();
+        while std::sync::Arc::strong_count(flag) > 1 && t.elapsed().as_secs() < 1 {
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        std::sync::Arc::strong_count(flag) == 1
+    }
+
     /// `spin_while` returns what `f` returns, with the pool's other thread taking a share of
-    /// `f`'s splits while it spins, and stops the spinning when `f` returns or panics: the
-    /// pool then runs a job on every thread (a thread still spinning would never take it).
+    /// `f`'s splits while it spins, and the spinning stops when `f` returns or panics (no turn
+    /// queues another).
     #[test]
     fn spinning_ends_with_the_run() {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
         let threads = std::sync::Mutex::new(std::collections::BTreeSet::new());
+        let flag: std::sync::Arc<std::sync::atomic::AtomicBool> = std::sync::Arc::default();
         let sum = pool.install(|| {
-            spin_while(|| {
+            super::spin_until_set(flag.clone(), || {
                 use rayon::prelude::*;
                 (0..64u64)
                     .into_par_iter()
@@ -543,10 +560,13 @@ mod tests {
         });
         assert_eq!(sum, 63 * 64 / 2);
         assert_eq!(threads.lock().unwrap().len(), 2, "both threads took a share");
-        assert_eq!(pool.broadcast(|c| c.index()), vec![0, 1]);
-        let panicked = pool.install(|| std::panic::catch_unwind(|| spin_while(|| panic!("a failing run"))));
+        assert!(turns_end(&flag), "the spinning went on after the run");
+        let flag: std::sync::Arc<std::sync::atomic::AtomicBool> = std::sync::Arc::default();
+        let panicked = pool
+            .install(|| std::panic::catch_unwind(|| super::spin_until_set(flag.clone(), || panic!("a failing run"))));
         assert!(panicked.is_err());
-        assert_eq!(pool.broadcast(|c| c.index()), vec![0, 1], "the spinning ended with the panic");
+        assert!(turns_end(&flag), "the spinning went on after the panic");
+        assert_eq!(pool.broadcast(|c| c.index()), vec![0, 1]);
     }
 
     /// Runs one after another, each of nested splits of uneven work (the shape of a graph's

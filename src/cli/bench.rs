@@ -179,6 +179,8 @@ struct Module {
 struct Report {
     plan: String,
     precision: String,
+    /// What the runtime's kernels may use here, and the cap (as printed).
+    isa: String,
     threads: usize,
     runs: usize,
     frame: String,
@@ -306,6 +308,7 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let report = Report {
         plan: a.plan.display().to_string(),
         precision,
+        isa: prl_runtime::isa().describe(),
         threads,
         runs: a.runs,
         frame: frame_name,
