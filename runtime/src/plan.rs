@@ -112,15 +112,18 @@ fn spin_until_set<R>(done: Arc<std::sync::atomic::AtomicBool>, f: impl FnOnce() 
 }
 
 /// One turn of [`spin_while`]'s spinning on a pool thread other than the run's (`me`): unless
-/// the run is `done`, run one job found elsewhere (or pause for a moment), then queue the next
-/// turn on this thread's own deque. Where the run's thread takes the turn (stealing it while it
-/// waits on a split) it only queues it again, for the others to take back.
+/// the run is `done`, run one job found elsewhere (or yield the core to any other thread that
+/// wants it), then queue the next turn on this thread's own deque. Where the run's thread
+/// takes the turn (stealing it while it waits on a split) it only queues it again, for the
+/// others to take back.
 fn spin_once(done: Arc<std::sync::atomic::AtomicBool>, me: usize) {
     if done.load(std::sync::atomic::Ordering::Acquire) {
         return;
     }
     if rayon::current_thread_index() != Some(me) && rayon::yield_now() != Some(rayon::Yield::Executed) {
-        std::hint::spin_loop();
+        // Nothing to steal: let any other thread that wants this core run (`prl track`'s frame
+        // decoding, say); with none, the call returns at once.
+        std::thread::yield_now();
     }
     rayon::spawn(move || spin_once(done, me));
 }
