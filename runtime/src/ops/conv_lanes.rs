@@ -144,8 +144,8 @@ impl LanePack {
     /// (channels in rows, positions in lanes) serve.
     ///
     /// - AVX-512, 32 channels or more ([`Lanes::registers_for`]): the wide tiles of `16·v`
-    ///   channels, or the compact ones of `16·v` channels by 8 output positions where they
-    ///   compute at least 5% fewer values.
+    ///   channels, or the compact ones of `16·v` channels by 8 (three registers) or 10 (two)
+    ///   output positions where they compute at least 5% fewer values.
     /// - AVX2: the compact tiles of 16 channels by 6 output positions where they compute at
     ///   least 5% fewer values than [`super::conv_kernel`]'s tiles of 4 channels (half a block)
     ///   by [`tile_positions`] wide positions.
