@@ -465,12 +465,11 @@ unsafe fn compact_avx2(l: &Layout, padded: &[f32], weights: &[f32], offsets: &[u
     }
 }
 
-/// [`compact_tiles`] on AVX-512: `16·V` channels by 8 output positions, `8·V` accumulators,
-/// each position reading through its own pointer; the taps taken `CHUNK` at a time over every
-/// tile, the partial sums kept in `sums`.
+/// [`compact_tiles`] on AVX-512: `16·V` channels by `P` output positions, each position
+/// reading through its own pointer ([`lane_tiles_avx512`]).
 ///
 /// # Safety
-/// The CPU has AVX-512F; every tap from every offset of `offsets` (8 per tile of `sums`) is
+/// The CPU has AVX-512F; every tap from every offset of `offsets` (`P` per tile of `sums`) is
 /// within `padded`; `weights` holds `16·V` values per tap, 64-byte aligned (`Line`).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
@@ -481,14 +480,62 @@ unsafe fn compact_avx512<const V: usize, const P: usize>(
     offsets: &[usize],
     sums: &mut [f32],
 ) {
+    // SAFETY: the caller's promises; each tile's pointers are its positions' offsets.
+    unsafe {
+        lane_tiles_avx512::<V, P>(l, weights, sums, |k| {
+            std::array::from_fn(|q| padded.as_ptr().add(offsets[k * P + q]))
+        })
+    }
+}
+
+/// [`tiles`] on AVX-512: `V·P` accumulators (24 or 27 of the 32 registers), the tile's `P`
+/// consecutive wide positions from one pointer ([`lane_tiles_avx512`]).
+///
+/// # Safety
+/// The CPU has AVX-512F; every tap's `P` positions from any tile of `sums` (from tile `first`)
+/// are within `padded`; `weights` holds `16·V` values per tap, 64-byte aligned (`Line`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn tiles_avx512<const V: usize, const P: usize>(
+    l: &Layout,
+    padded: &[f32],
+    weights: &[f32],
+    first: usize,
+    sums: &mut [f32],
+) {
+    // SAFETY: the caller's promises (`run` asserted them).
+    unsafe {
+        lane_tiles_avx512::<V, P>(l, weights, sums, |k| {
+            let base = padded.as_ptr().add((first + k) * P);
+            std::array::from_fn(|q| base.add(q))
+        })
+    }
+}
+
+/// The AVX-512 tiles of `16·V` channels by `P` positions, position `q` of tile `k` reading
+/// tap `t` at `inputs(k)[q] + t`: the taps taken `CHUNK` at a time over every tile, the
+/// partial sums kept in `sums` (`[tile][position][16·V]`). Per tap, `V` aligned weight loads,
+/// `P` broadcasts and `V·P` fused multiply-adds, in tap order from zero.
+///
+/// # Safety
+/// The CPU has AVX-512F; every tap from every pointer `inputs` gives is readable; `weights`
+/// holds `16·V` values per tap, 64-byte aligned (`Line`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn lane_tiles_avx512<const V: usize, const P: usize>(
+    l: &Layout,
+    weights: &[f32],
+    sums: &mut [f32],
+    inputs: impl Fn(usize) -> [*const f32; P],
+) {
     use std::arch::x86_64::*;
     let oc = L * V;
     for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
-        for (tile, at) in sums.chunks_exact_mut(oc * P).zip(offsets.chunks_exact(P)) {
-            // SAFETY (pointer reads and writes): the caller's promises for `padded` (every tap
-            // from each position's offset) and `weights`; `tile` holds `P · oc` values.
+        for (k, tile) in sums.chunks_exact_mut(oc * P).enumerate() {
+            let p = inputs(k);
+            // SAFETY (pointer reads and writes): the caller's promises for the inputs and
+            // `weights`; `tile` holds `P · oc` values.
             unsafe {
-                let p: [*const f32; P] = std::array::from_fn(|q| padded.as_ptr().add(at[q]));
                 let s = tile.as_mut_ptr();
                 let mut a = [[_mm512_setzero_ps(); V]; P];
                 if c > 0 {
@@ -503,57 +550,6 @@ unsafe fn compact_avx512<const V: usize, const P: usize>(
                     let wv: [__m512; V] = std::array::from_fn(|v| _mm512_load_ps(w.add(L * v)));
                     for (a, p) in a.iter_mut().zip(&p) {
                         let b = _mm512_set1_ps(*p.add(t));
-                        for (a, &w) in a.iter_mut().zip(&wv) {
-                            *a = _mm512_fmadd_ps(b, w, *a);
-                        }
-                    }
-                    w = w.add(oc);
-                }
-                for (q, a) in a.iter().enumerate() {
-                    for (v, a) in a.iter().enumerate() {
-                        _mm512_storeu_ps(s.add(oc * q + L * v), *a);
-                    }
-                }
-            }
-        }
-    }
-}
-
-/// [`tiles`] on AVX-512: `V·P` accumulators (24 or 27 of the 32 registers), the taps taken
-/// `CHUNK` at a time over every tile, the partial sums kept in `sums`.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn tiles_avx512<const V: usize, const P: usize>(
-    l: &Layout,
-    padded: &[f32],
-    weights: &[f32],
-    first: usize,
-    sums: &mut [f32],
-) {
-    use std::arch::x86_64::*;
-    let oc = L * V;
-    for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
-        for (k, tile) in sums.chunks_exact_mut(oc * P).enumerate() {
-            // SAFETY (pointer reads and writes): `run` asserted every tap's `P` positions from
-            // any tile in `padded`; `weights` holds `oc` values per tap, 64-byte aligned
-            // (`Line`); `tile` holds `P · oc` values.
-            unsafe {
-                let s = tile.as_mut_ptr();
-                let mut a = [[_mm512_setzero_ps(); V]; P];
-                if c > 0 {
-                    for (q, a) in a.iter_mut().enumerate() {
-                        for (v, a) in a.iter_mut().enumerate() {
-                            *a = _mm512_loadu_ps(s.add(oc * q + L * v));
-                        }
-                    }
-                }
-                let base = padded.as_ptr().add((first + k) * P);
-                let mut w = weights.as_ptr().add(c * CHUNK * oc);
-                for &t in taps {
-                    let wv: [__m512; V] = std::array::from_fn(|v| _mm512_load_ps(w.add(L * v)));
-                    let x = base.add(t);
-                    for (q, a) in a.iter_mut().enumerate() {
-                        let b = _mm512_set1_ps(*x.add(q));
                         for (a, &w) in a.iter_mut().zip(&wv) {
                             *a = _mm512_fmadd_ps(b, w, *a);
                         }
