@@ -89,10 +89,10 @@ impl<T: Copy + Default> Lanes<T> {
 
     /// Positions per tile.
     pub(crate) fn positions(&self) -> usize {
-        match (self.compact, self.v) {
-            (true, v) => compact_tile_positions(v),
-            (false, 3) => 8,
-            _ => 12,
+        if self.compact {
+            compact_tile_positions(self.v)
+        } else {
+            wide_tile_positions(self.v)
         }
     }
 
@@ -161,7 +161,7 @@ impl LanePack {
         let (v, wide_channels, wide_px) = match crate::isa::f32_kernel() {
             F32Kernel::Avx512 => {
                 let v = Self::registers_for(co)?;
-                (v, L * v, if v == 3 { 8 } else { 12 })
+                (v, L * v, wide_tile_positions(v))
             }
             F32Kernel::Avx2Fma => (1, ROWS / 2, tile_positions()),
             _ => return None,
@@ -333,6 +333,16 @@ fn tiles(l: &Layout, oc: usize, px: usize, padded: &[f32], weights: &[f32], firs
 
 /// Output positions per AVX2 compact tile (16 channels).
 pub(crate) const COMPACT_P: usize = 6;
+
+/// Positions per wide tile of `v` registers on AVX-512: 8 for three (24 accumulators), 12 for
+/// two (also 24).
+fn wide_tile_positions(v: usize) -> usize {
+    if v == 3 {
+        8
+    } else {
+        12
+    }
+}
 
 /// Output positions per compact tile of `v` registers: 6 on AVX2 (one register of 16
 /// channels: 12 accumulators of 8 lanes), 8 on AVX-512 (16 or 24 accumulators).
