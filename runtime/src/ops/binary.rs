@@ -13,6 +13,10 @@ use tract_nnef::tract_core::ops::math::{Add, Mul};
 
 use super::act::{Activation, Tail};
 
+/// Values in one share of the work handed to the pool's threads (whole rows): an output of
+/// fewer stays on the calling thread.
+const SHARE: usize = 1 << 15;
+
 /// Which operation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Binary {
@@ -106,21 +110,25 @@ impl EvalOp for BroadcastBinary {
             let data = plain.as_slice_mut::<f32>()?;
             let (inner, inner_stride) = runs.last().copied().unwrap_or((1, 0));
             let outer = &runs[..runs.len().saturating_sub(1)];
-            for (row, chunk) in data.chunks_exact_mut(inner).enumerate() {
-                // The small operand's offset for this row (mixed radix over the outer runs).
-                let (mut rest, mut at) = (row, 0);
-                for &(len, stride) in outer.iter().rev() {
-                    at += (rest % len) * stride;
-                    rest /= len;
+            // Whole rows to a share, at least [`SHARE`] values (fewer stay on one thread).
+            let rows = SHARE.div_ceil(inner.max(1));
+            super::par_chunks(data, rows * inner.max(1), |c, share| {
+                for (r, chunk) in share.chunks_exact_mut(inner).enumerate() {
+                    // The small operand's offset for this row (mixed radix over the outer runs).
+                    let (mut rest, mut at) = (c * rows + r, 0);
+                    for &(len, stride) in outer.iter().rev() {
+                        at += (rest % len) * stride;
+                        rest /= len;
+                    }
+                    match (self.op, inner_stride) {
+                        (Binary::Mul, 0) => chunk.iter_mut().for_each(|v| *v *= small[at]),
+                        (Binary::Add, 0) => chunk.iter_mut().for_each(|v| *v += small[at]),
+                        (Binary::Mul, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v *= s),
+                        (Binary::Add, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v += s),
+                    }
+                    self.act.apply_all(chunk);
                 }
-                match (self.op, inner_stride) {
-                    (Binary::Mul, 0) => chunk.iter_mut().for_each(|v| *v *= small[at]),
-                    (Binary::Add, 0) => chunk.iter_mut().for_each(|v| *v += small[at]),
-                    (Binary::Mul, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v *= s),
-                    (Binary::Add, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v += s),
-                }
-                self.act.apply_all(chunk);
-            }
+            });
         }
         Ok(tvec!(out.into_tvalue()))
     }
@@ -177,6 +185,11 @@ mod tests {
             (vec![1, 6, 5, 7], vec![1, 6, 1, 1]),
             (vec![2, 6, 5, 7], vec![2, 1, 5, 1]),
             (vec![1, 1, 5, 7], vec![3, 6, 5, 7]),
+            // PRL-Track's gate and a scaling, over several shares of the threads' work (the
+            // rows' offsets across their seams).
+            (vec![1, 384, 21, 21], vec![1, 1, 21, 21]),
+            (vec![1, 192, 11, 11], vec![1, 192, 1, 1]),
+            (vec![2, 96, 17, 23], vec![2, 1, 17, 1]),
         ] {
             let values = |s: &[usize], k: usize| {
                 let v: Vec<f32> = (0..s.iter().product()).map(|i| ((i * k % 13) as f32) - 6.0).collect();
@@ -191,7 +204,10 @@ mod tests {
                 let want = tract_op.eval(&EvalContext::out_of_plan(), inputs).unwrap().remove(0);
                 let full = if a.iter().product::<usize>() >= b.iter().product() { 0 } else { 1 };
                 let ours = BroadcastBinary { op, full, act: Activation::NONE };
-                let got = ours.eval(&EvalContext::out_of_plan(), tvec![x.into_tvalue(), y.into_tvalue()]).unwrap();
+                let pool = tract_linalg::multithread::Executor::multithread(2);
+                let got = tract_linalg::multithread::multithread_tract_scope(pool, || {
+                    ours.eval(&EvalContext::out_of_plan(), tvec![x.into_tvalue(), y.into_tvalue()]).unwrap()
+                });
                 assert_eq!(got[0].shape(), want.shape());
                 let (got, want) = (got[0].try_as_plain_ram().unwrap(), want.try_as_plain_ram().unwrap());
                 assert_eq!(got.as_slice::<f32>().unwrap(), want.as_slice::<f32>().unwrap(), "{op:?} {a:?} {b:?}");

@@ -30,6 +30,11 @@ impl QuantizeU8 {
     }
 }
 
+/// Elements in one share of the work [`QuantizeU8`] and [`DequantizeU8`] hand to the pool's
+/// threads: a tensor of fewer stays on the calling thread (a hand-over costs about what 30 000
+/// elements take).
+const SHARE: usize = 1 << 15;
+
 /// The portable formula: tract's for every value whose scaled magnitude fits an `i32`; NaN gives
 /// the zero point as there, and values beyond (±inf) saturate to 0 or 255, as ONNX's
 /// `QuantizeLinear` says (tract's own addition overflows there: a panic in a debug build, a
@@ -134,8 +139,9 @@ impl EvalOp for QuantizeU8 {
         let shape: TVec<usize> = input.shape().into();
         let xs = input.try_as_plain_ram()?;
         let xs = xs.as_slice::<f32>()?;
+        let (scale, zp, share) = (self.scale, self.zero_point as i32, SHARE);
         let out = output_tensor::<u8>(&shape, |ys| {
-            kernel::quantize(xs, ys, self.scale, self.zero_point as i32);
+            par_chunks(ys, share, |i, ys| kernel::quantize(&xs[i * share..][..ys.len()], ys, scale, zp));
             Ok(())
         })?;
         Ok(tvec!(out.into_tvalue()))
@@ -180,10 +186,6 @@ impl DequantizeU8 {
         DequantizeU8 { scale, zero_point }
     }
 }
-
-/// Elements in one share of the work handed to the pool's threads: a tensor of fewer stays on
-/// the calling thread (a hand-over costs about what 30 000 elements take).
-const DEQUANTIZE_SHARE: usize = 1 << 15;
 
 mod dequantize {
     /// Dequantise `xs` into `ys` on the widest lanes this CPU has (the loop is the same; the
@@ -242,7 +244,7 @@ impl EvalOp for DequantizeU8 {
         let xs = input.try_as_plain_ram()?;
         // SAFETY: u8, possibly with quantisation parameters (checked when the op was made).
         let xs = unsafe { xs.as_slice_unchecked::<u8>() };
-        let share = DEQUANTIZE_SHARE;
+        let share = SHARE;
         let (scale, zp) = (self.scale, self.zero_point);
         // SAFETY: the chunks cover the whole output, and each is written whole.
         let out = unsafe {
@@ -329,11 +331,13 @@ mod tests {
     fn dequantizing_equals_tracts_op_on_every_path_and_share() -> TractResult<()> {
         use tract_nnef::tract_core::ops::quant::DequantizeLinearF32;
         // Longer than two shares and not a multiple of any lane count: the tails and the seams.
-        let n = 2 * DEQUANTIZE_SHARE + 77;
+        let n = 2 * SHARE + 77;
         let xs: Vec<u8> = (0..n).map(|i| (i * 7919 % 256) as u8).collect();
         let input = tensor1(&xs).into_shape(&[1, n])?.into_tvalue();
         for (scale, zp) in [(0.03160982f32, 0), (100.79951, 0), (0.37, 17), (1e-3, 255)] {
-            let theirs = DequantizeLinearF32 { scale, zero_point: zp }.eval(&EvalContext::out_of_plan(), tvec!(input.clone()))?.remove(0);
+            let theirs = DequantizeLinearF32 { scale, zero_point: zp }
+                .eval(&EvalContext::out_of_plan(), tvec!(input.clone()))?
+                .remove(0);
             let want = theirs.try_as_plain_ram()?.as_slice::<f32>()?.to_vec();
             let mut paths: Vec<(&str, Vec<f32>)> = vec![];
             let mut ys = vec![f32::NAN; n];
@@ -346,20 +350,26 @@ mod tests {
                     unsafe { dequantize::dequantize_avx2(&xs, &mut ys, scale, zp) };
                     paths.push(("avx2", ys.clone()));
                 } else {
-                    eprintln!("NOTE: no AVX2+FMA here (or PRL_ISA caps it): DequantizeU8's AVX2 path is not tested here");
+                    eprintln!(
+                        "NOTE: no AVX2+FMA here (or PRL_ISA caps it): DequantizeU8's AVX2 path is not tested here"
+                    );
                 }
                 if super::super::avx512_fma() {
                     // SAFETY: AVX-512F, AVX2 and FMA are present.
                     unsafe { dequantize::dequantize_avx512(&xs, &mut ys, scale, zp) };
                     paths.push(("avx512", ys.clone()));
                 } else {
-                    eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): DequantizeU8's AVX-512 path is not tested here");
+                    eprintln!(
+                        "NOTE: no AVX-512 here (or PRL_ISA caps it): DequantizeU8's AVX-512 path is not tested here"
+                    );
                 }
             }
             // The op as the graph runs it, over a two-thread pool (three shares).
             let op = DequantizeU8::new(scale, zp);
             let pool = tract_linalg::multithread::Executor::multithread(2);
-            let ours = tract_linalg::multithread::multithread_tract_scope(pool, || op.eval(&EvalContext::out_of_plan(), tvec!(input.clone())))?;
+            let ours = tract_linalg::multithread::multithread_tract_scope(pool, || {
+                op.eval(&EvalContext::out_of_plan(), tvec!(input.clone()))
+            })?;
             paths.push(("op", ours[0].try_as_plain_ram()?.as_slice::<f32>()?.to_vec()));
             for (name, got) in paths {
                 let bad = got.iter().zip(&want).position(|(a, b)| a.to_bits() != b.to_bits());
