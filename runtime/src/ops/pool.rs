@@ -134,14 +134,15 @@ impl ChannelMaxPool {
     }
 }
 
-/// [`ChannelMaxPool::plane`] for a 3 x 3 window of stride 2 on AVX-512: each output row's three
-/// input rows reduced 16 columns at a time, then 16 outputs at a time from the reduced row's
-/// even columns, odd columns and even columns two on (two-source permutes), `vmaxps` throughout
-/// (the same maxima as `f32::max` without NaNs), the rows' tails as masked vectors. PRL-Track's
-/// pools 0.59 -> 0.44 and 0.13 -> 0.10 ms alone on one thread of an AVX-512 Xeon (search and
-/// template graphs' first), 1.25 -> 0.91 ms and 0.82 -> 0.43 ms in the search graph's
-/// profile, where the portable form reduced every column of the window before keeping every
-/// other one.
+/// [`ChannelMaxPool::plane`] for a 3 x 3 window of stride 2 on AVX-512: 16 outputs at a time
+/// from the three input rows' columns `2x ..` and `2x + 2 ..` (two vectors each, masked at the
+/// row's end), reduced over the rows, then the even columns, the odd columns and the even
+/// columns two on picked out (two-source permutes), `vmaxps` throughout (the same maxima as
+/// `f32::max` without NaNs). The first form stored each output row's reduced row and read it
+/// back at offsets of 2 (store-to-load forwarding failed on every such read): PRL-Track's
+/// template pools took 0.10 and 0.095 ms so alone on one thread of an AVX-512 Xeon, 0.044 and
+/// 0.023 now (ONNX Runtime's 0.035 and 0.023 in its profile); the search graph's first 0.47
+/// -> 0.43 (its 7.4 MB input comes from L3).
 ///
 /// # Safety
 /// The CPU has AVX-512F.
@@ -151,37 +152,39 @@ unsafe fn plane_k3s2_avx512(src: &[f32], w: usize, dst: &mut [f32]) {
     use std::arch::x86_64::*;
     let ow = (w - 3) / 2 + 1;
     assert!(w >= 3 && dst.len().is_multiple_of(ow) && src.len() >= ((dst.len() / ow - 1) * 2 + 3) * w);
-    // The reduced row, with room for the last block's reads past its end (never kept).
-    let mut cols = vec![f32::NEG_INFINITY; (2 * ow).next_multiple_of(32) + 32];
     let even = _mm512_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30);
     let odd = _mm512_setr_epi32(1, 3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 27, 29, 31);
-    for (y, row) in dst.chunks_exact_mut(ow).enumerate() {
-        let rows: [&[f32]; 3] = std::array::from_fn(|i| &src[(2 * y + i) * w..(2 * y + i + 1) * w]);
-        let mut j = 0;
-        while j < w {
-            let mask = (((1u32 << 16.min(w - j)) - 1) & 0xffff) as u16;
-            // SAFETY: the loads are masked to the `w - j` values left in each row; the store
-            // is within `cols` (longer than `w` rounded up to 16).
-            unsafe {
-                let v = rows.map(|r| _mm512_maskz_loadu_ps(mask, r.as_ptr().add(j)));
-                _mm512_storeu_ps(cols.as_mut_ptr().add(j), _mm512_max_ps(_mm512_max_ps(v[0], v[1]), v[2]));
-            }
-            j += 16;
-        }
+    // The lanes of a 16-column load from column `at` that fall within the row.
+    let lanes = |at: usize| -> u16 { ((1u32 << w.saturating_sub(at).min(16)) - 1) as u16 };
+    let (oh, out) = (dst.len() / ow, dst.as_mut_ptr());
+    // Bands of 8 output rows (their 17 input rows stay in L1 while each column block passes
+    // over them), column blocks within a band (their masks made once).
+    for band in (0..oh).step_by(8) {
         let mut x = 0;
         while x < ow {
             let n = 16.min(ow - x);
-            // SAFETY: reads of `cols` at `2x .. 2x + 34`, within its `2·ow` rounded up to 32,
-            // plus 32; the store is masked to the `n` outputs left of `row`.
-            unsafe {
-                let c = cols.as_ptr().add(2 * x);
-                let (a, b) = (_mm512_loadu_ps(c), _mm512_loadu_ps(c.add(16)));
-                let (a2, b2) = (_mm512_loadu_ps(c.add(2)), _mm512_loadu_ps(c.add(18)));
-                let m = _mm512_max_ps(
-                    _mm512_max_ps(_mm512_permutex2var_ps(a, even, b), _mm512_permutex2var_ps(a, odd, b)),
-                    _mm512_permutex2var_ps(a2, even, b2),
-                );
-                _mm512_mask_storeu_ps(row.as_mut_ptr().add(x), ((1u32 << n) - 1) as u16, m);
+            // Output x + i reads columns 2(x + i) ..= 2(x + i) + 2, all below w for i < n; the
+            // lanes past the row's end load as 0 and reach only outputs that are not stored.
+            let at = [2 * x, 2 * x + 16, 2 * x + 2, 2 * x + 18];
+            let masks = at.map(lanes);
+            for y in band..oh.min(band + 8) {
+                // SAFETY: each load is masked to the columns (below `w`) of a row of the window,
+                // within `src` (asserted); the store is masked to the `n` outputs left of row `y`.
+                unsafe {
+                    let rows: [*const f32; 3] = std::array::from_fn(|i| src.as_ptr().add((2 * y + i) * w));
+                    let v: [__m512; 4] = std::array::from_fn(|k| {
+                        let load = |r: *const f32| _mm512_maskz_loadu_ps(masks[k], r.wrapping_add(at[k]));
+                        _mm512_max_ps(_mm512_max_ps(load(rows[0]), load(rows[1])), load(rows[2]))
+                    });
+                    let m = _mm512_max_ps(
+                        _mm512_max_ps(
+                            _mm512_permutex2var_ps(v[0], even, v[1]),
+                            _mm512_permutex2var_ps(v[0], odd, v[1]),
+                        ),
+                        _mm512_permutex2var_ps(v[2], even, v[3]),
+                    );
+                    _mm512_mask_storeu_ps(out.add(y * ow + x), ((1u32 << n) - 1) as u16, m);
+                }
             }
             x += n;
         }
@@ -240,7 +243,7 @@ mod tests {
         // Windows and strides of the networks' pools and others, odd and even sides; channel 1
         // holds the negated values.
         // (3, 2) with rows of more than 16 outputs: on AVX-512 its vector kernel, whole
-        // vectors and a tail.
+        // vectors and a tail, several bands of rows.
         if crate::isa::f32_kernel() != crate::isa::F32Kernel::Avx512 {
             println!("NOTE: no AVX-512 here (or PRL_ISA caps it): the 3 x 3 stride-2 pool kernel is not tested here");
         }
@@ -253,6 +256,10 @@ mod tests {
             (3, 2, 9, 71),
             (3, 2, 6, 66),
             (3, 2, 5, 35),
+            // More output rows than a band of the vector kernel (8), not a multiple of it; a
+            // plane one output wide.
+            (3, 2, 41, 37),
+            (3, 2, 20, 3),
         ] {
             let op = ChannelMaxPool { k, stride };
             let (oh, ow) = (op.out(h), op.out(w));
