@@ -9,7 +9,7 @@
 //! formula lane by lane (each lane its channel's offset and scale), so the bytes are the same.
 
 use super::conv_kernel::Layout;
-use super::conv_lanes::{for_each_item, outputs, Lanes};
+use super::conv_lanes::{for_each_item, outputs, store_by_channel, Lanes};
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::requant_lanes;
 use super::qconv_kernel::requant_one;
@@ -116,15 +116,16 @@ impl QLanePack {
                 };
                 return;
             }
-            let mut bytes = vec![0u8; oc];
-            for (s, at) in outputs(g, &sums, oc, px, first) {
-                requantise_lanes(vector, s, offset, (scale, self.exact), y0, &mut bytes);
-                for (r, &v) in bytes[..rows].iter().enumerate() {
-                    // SAFETY: `b·oc + r < co` and `at < plane`, within `out` (asserted); each
-                    // (channel, position) belongs to one item only.
-                    unsafe { *dst.at((b * oc + r) * plane + at) = v };
-                }
+            // Each position's bytes, then stored channel by channel (`store_by_channel`).
+            let mut bytes = vec![0u8; sums.len()];
+            let mut places = vec![];
+            for (k, (s, at)) in outputs(g, &sums, oc, px, first).enumerate() {
+                requantise_lanes(vector, s, offset, (scale, self.exact), y0, &mut bytes[k * oc..(k + 1) * oc]);
+                places.push((k * oc, at));
             }
+            // SAFETY: each place is within a plane; channels `b·oc .. b·oc + rows <= co`
+            // (asserted); this item's alone.
+            unsafe { store_by_channel(&dst, &bytes, b * oc, rows, plane, &places, |_, v| v) };
         });
     }
 }
