@@ -385,6 +385,12 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         {
             "avx512 (f32), avx2 (u8)".to_string()
         }
+        // And in NEON on aarch64 (u8 in the portable form, vectorised by the compiler).
+        "ChannelMaxPool"
+            if info.contains("3x3 window, stride 2") && crate::isa::f32_kernel() == crate::isa::F32Kernel::Neon =>
+        {
+            "neon (f32), portable (u8)".to_string()
+        }
         // Compiled for AVX2 on every x86 kernel of the table but the portable one.
         "ChannelMaxPool"
             if cfg!(target_arch = "x86_64") && crate::isa::f32_kernel() != crate::isa::F32Kernel::Portable =>

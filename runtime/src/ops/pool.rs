@@ -49,7 +49,10 @@ impl EvalOp for ChannelMaxPool {
             #[cfg(target_arch = "x86_64")]
             let fast = (self.k == 3 && self.stride == 2 && crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512)
                 .then_some(plane_k3s2_avx512 as PlaneFn<f32>);
-            #[cfg(not(target_arch = "x86_64"))]
+            #[cfg(target_arch = "aarch64")]
+            let fast = (self.k == 3 && self.stride == 2 && crate::isa::f32_kernel() == crate::isa::F32Kernel::Neon)
+                .then_some(plane_k3s2_neon as PlaneFn<f32>);
+            #[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
             let fast = None;
             self.pool(plain.as_slice::<f32>()?, [n, c, h, w], f32::NEG_INFINITY, f32::max, fast)?
         } else {
@@ -191,6 +194,54 @@ unsafe fn plane_k3s2_avx512(src: &[f32], w: usize, dst: &mut [f32]) {
     }
 }
 
+/// [`ChannelMaxPool::plane`] for a 3 x 3 window of stride 2 on NEON: 8 outputs at a time, each
+/// input row's columns `2x ..` and `2x + 2 ..` loaded de-interleaved (`ld2`: even and odd
+/// columns in two registers, so the stride costs no shuffles), reduced over the three rows and
+/// the window's three columns with `fmaxnm` (`f32::max`'s maximum, NaNs included); the outputs
+/// whose window reaches past what a whole load may read, one at a time. The portable form
+/// reduced every column of the window before keeping every other one, twice the work and a
+/// strided copy.
+///
+/// # Safety
+/// The CPU has NEON (the aarch64 baseline).
+#[cfg(target_arch = "aarch64")]
+#[target_feature(enable = "neon")]
+unsafe fn plane_k3s2_neon(src: &[f32], w: usize, dst: &mut [f32]) {
+    use std::arch::aarch64::*;
+    let ow = (w - 3) / 2 + 1;
+    let oh = dst.len() / ow;
+    assert!(w >= 3 && dst.len() == oh * ow && src.len() >= ((oh.max(1) - 1) * 2 + 3) * w);
+    // Outputs x .. x + 8 read columns 2x .. 2x + 18 (`ld2` of 8 from 2x, 2x + 2, 2x + 8 and
+    // 2x + 10: through 2x + 17, of which 2x + 16 is kept): blocks of 8 outputs within the row
+    // that start at or before (w - 18) / 2.
+    let blocks = if w >= 18 { ((w - 18) / 2 / 8 + 1).min(ow / 8) } else { 0 };
+    for y in 0..oh {
+        let rows: [&[f32]; 3] = std::array::from_fn(|i| &src[(2 * y + i) * w..(2 * y + i + 1) * w]);
+        let out = &mut dst[y * ow..(y + 1) * ow];
+        for b in 0..blocks {
+            let x = 8 * b;
+            // SAFETY: each row's reads are columns 2x .. 2x + 18 <= w (`blocks`); the stores are
+            // outputs x .. x + 8 <= ow.
+            unsafe {
+                let mut m = [vdupq_n_f32(f32::NEG_INFINITY); 2];
+                for r in rows {
+                    let p = r.as_ptr().add(2 * x);
+                    for (h, m) in m.iter_mut().enumerate() {
+                        let a = vld2q_f32(p.add(8 * h));
+                        let c = vld2q_f32(p.add(8 * h + 2));
+                        *m = vmaxnmq_f32(*m, vmaxnmq_f32(vmaxnmq_f32(a.0, a.1), c.0));
+                    }
+                }
+                vst1q_f32(out.as_mut_ptr().add(x), m[0]);
+                vst1q_f32(out.as_mut_ptr().add(x + 4), m[1]);
+            }
+        }
+        for (x, o) in out.iter_mut().enumerate().skip(8 * blocks) {
+            *o = rows.iter().flat_map(|r| &r[2 * x..2 * x + 3]).fold(f32::NEG_INFINITY, |a, &b| a.max(b));
+        }
+    }
+}
+
 impl TypedOp for ChannelMaxPool {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
         let s = &inputs[0].shape;
@@ -242,10 +293,10 @@ mod tests {
     fn takes_the_maximum_of_each_window() {
         // Windows and strides of the networks' pools and others, odd and even sides; channel 1
         // holds the negated values.
-        // (3, 2) with rows of more than 16 outputs: on AVX-512 its vector kernel, whole
-        // vectors and a tail, several bands of rows.
-        if crate::isa::f32_kernel() != crate::isa::F32Kernel::Avx512 {
-            println!("NOTE: no AVX-512 here (or PRL_ISA caps it): the 3 x 3 stride-2 pool kernel is not tested here");
+        // (3, 2) with rows of more than 16 outputs: on AVX-512 (NEON) its vector kernel, whole
+        // vectors (blocks of 8) and a tail, several bands of rows.
+        if !matches!(crate::isa::f32_kernel(), crate::isa::F32Kernel::Avx512 | crate::isa::F32Kernel::Neon) {
+            println!("NOTE: no AVX-512 or NEON here (or PRL_ISA caps them): the 3 x 3 stride-2 pool kernels are not tested here");
         }
         for (k, stride, h, w) in [
             (3, 2, 7, 5),
