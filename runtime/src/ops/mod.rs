@@ -425,6 +425,16 @@ impl<T> SyncPtr<T> {
     }
 }
 
+/// The threads [`par_for`] and [`par_chunks`] run on (tract's executor's).
+fn threads() -> usize {
+    use tract_linalg::multithread::{current_tract_executor, Executor};
+    match current_tract_executor() {
+        Executor::SingleThread => 1,
+        Executor::MultiThread(pool) => pool.current_num_threads(),
+        Executor::RayonGlobal => rayon::current_num_threads(),
+    }
+}
+
 /// Run `f(i)` for every `i < n`, on tract's thread pool when it has one.
 fn par_for(n: usize, f: impl Fn(usize) + Sync) {
     use rayon::prelude::*;
