@@ -397,7 +397,8 @@ pub(super) fn for_each_item(blocks: usize, tiles: usize, f: impl Fn(usize, usize
 /// The outputs held in `sums` (`[tile][position][oc]`, tiles of `px` positions from tile
 /// `first`): each real output position's `oc` sums and its index in an output plane (the
 /// wide columns and the positions past the end left out).
-pub(super) fn outputs<'a, T>(
+#[cfg(test)]
+fn outputs<'a, T>(
     l: &'a Layout,
     sums: &'a [T],
     oc: usize,
@@ -410,7 +411,7 @@ pub(super) fn outputs<'a, T>(
 /// Of `n` positions of wide tiles of `px` from tile `first`, each real output position's index
 /// among them and its index in an output plane (the wide columns and the positions past the
 /// end left out).
-fn places(l: &Layout, px: usize, first: usize, n: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
+pub(super) fn places(l: &Layout, px: usize, first: usize, n: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
     (0..n).filter_map(move |i| {
         let p = first * px + i;
         let (y, x) = (p / l.wp, p % l.wp);

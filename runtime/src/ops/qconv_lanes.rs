@@ -9,7 +9,7 @@
 //! formula lane by lane (each lane its channel's offset and scale), so the bytes are the same.
 
 use super::conv_kernel::Layout;
-use super::conv_lanes::{for_each_item, outputs, store_by_channel, Lanes};
+use super::conv_lanes::{for_each_item, places, store_by_channel, Lanes};
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::requant_lanes;
 use super::qconv_kernel::requant_one;
@@ -94,34 +94,33 @@ impl QLanePack {
             let offset = &self.offset[b * oc..(b + 1) * oc];
             let scale = &self.scale[b * oc..(b + 1) * oc];
             let vector = cfg!(target_arch = "x86_64") && crate::isa().avx512;
+            // The item's real output positions: consecutive outputs (the wide columns, where
+            // there are some, left out), each with its first sum.
+            let places: Vec<(usize, usize)> = places(g, px, first, count * px).map(|(q, at)| (q * oc, at)).collect();
             #[cfg(target_arch = "x86_64")]
-            if vector && g.wp == g.ow {
-                // No wide columns (a 1x1 layer): the item's positions are consecutive outputs.
-                let p0 = first * px;
-                let n = (count * px).min(g.positions() - p0);
-                // SAFETY: the CPU has AVX-512F; `sums` holds `n` positions of `oc` values;
-                // channels `b·oc .. b·oc + rows < co` at positions `p0 .. p0 + n <= plane` are
-                // within `out` (asserted) and this item's alone.
+            if vector && places.windows(2).all(|p| p[1].1 == p[0].1 + 1) {
+                // SAFETY: the CPU has AVX-512F; channels `b·oc .. b·oc + rows < co` at the
+                // places (within a plane) are within `out` (asserted) and this item's alone;
+                // `offset` and `scale` hold `oc` values, a multiple of 16.
                 unsafe {
                     requant_transposed(
-                        &sums[..n * oc],
+                        &sums,
                         oc,
                         rows,
                         offset,
                         (scale, self.exact),
                         y0,
-                        dst.at(b * oc * plane + p0),
+                        dst.at(b * oc * plane),
                         plane,
+                        &places,
                     )
                 };
                 return;
             }
             // Each position's bytes, then stored channel by channel (`store_by_channel`).
             let mut bytes = vec![0u8; sums.len()];
-            let mut places = vec![];
-            for (k, (s, at)) in outputs(g, &sums, oc, px, first).enumerate() {
-                requantise_lanes(vector, s, offset, (scale, self.exact), y0, &mut bytes[k * oc..(k + 1) * oc]);
-                places.push((k * oc, at));
+            for &(i, _) in &places {
+                requantise_lanes(vector, &sums[i..i + oc], offset, (scale, self.exact), y0, &mut bytes[i..i + oc]);
             }
             // SAFETY: each place is within a plane; channels `b·oc .. b·oc + rows <= co`
             // (asserted); this item's alone.
@@ -171,14 +170,18 @@ unsafe fn requant16_lanes(sums: &[i32], offset: &[i32], scale: &[f32], exact: bo
     }
 }
 
-/// [`requantise_lanes`] for `sums` (`[position][oc]`, consecutive output positions), written
-/// channel by channel: sixteen positions' sums transposed (16 x 16 i32), then each channel's
-/// sixteen requantised with its own offset and scale ([`requant_lanes`], so the same bytes)
-/// and stored as 16 consecutive bytes of its plane (`out + c·plane`): no byte-by-byte scatter.
+/// [`requantise_lanes`] for the `sums` (`oc` per position) of `places` (each position's first
+/// sum and its output position; the output positions consecutive), written channel by channel:
+/// sixteen positions' sums transposed (16 x 16 i32), then each channel's sixteen requantised
+/// with its own offset and scale ([`requant_lanes`], so the same bytes) and stored as 16
+/// consecutive bytes of its plane (`out + c·plane + position`): no byte-by-byte scatter. (The
+/// wide tiles stored byte by byte took 5.1 ms of PRL-Track's int8 first layer on one thread
+/// of an AVX-512 Xeon, an output for every 363 multiply-adds.)
 ///
 /// # Safety
-/// The CPU has AVX-512F; `out + c·plane + k` is writable for every channel `c < rows` and
-/// position `k < sums.len() / oc`; `offset` and `scale` hold `rows` values, rounded up to 16.
+/// The CPU has AVX-512F; `out + c·plane + p` is writable for every channel `c < rows` and
+/// place's position `p`; each place's `oc` sums are within `sums`; `offset` and `scale` hold
+/// `rows` values, rounded up to 16.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[allow(clippy::too_many_arguments)]
@@ -191,26 +194,29 @@ unsafe fn requant_transposed(
     y0: u8,
     out: *mut u8,
     plane: usize,
+    places: &[(usize, usize)],
 ) {
     use std::arch::x86_64::*;
-    let n = sums.len() / oc;
+    let n = places.len();
     assert!(offset.len() >= rows.div_ceil(L) * L && scale.len() >= rows.div_ceil(L) * L && oc.is_multiple_of(L));
+    assert!(places.iter().all(|&(i, _)| i + oc <= sums.len()));
     for k0 in (0..n).step_by(L) {
         let m = (n - k0).min(L);
         let keep = ((1u32 << m) - 1) as __mmask16;
         for j in 0..rows.div_ceil(L) {
             let mut r = [_mm512_setzero_ps(); L];
             for (i, r) in r.iter_mut().enumerate().take(m) {
-                // SAFETY: position k0 + i < n, channels 16j .. 16j + 16 <= oc.
-                *r = unsafe { _mm512_loadu_ps(sums.as_ptr().add((k0 + i) * oc + L * j).cast()) };
+                // SAFETY: place k0 + i < n, channels 16j .. 16j + 16 <= oc of its sums (asserted).
+                *r = unsafe { _mm512_loadu_ps(sums.as_ptr().add(places[k0 + i].0 + L * j).cast()) };
             }
             transpose(&mut r);
             for (c, r) in r.iter().enumerate().take((rows - L * j).min(L)) {
                 let ch = L * j + c;
                 let (o, c) = (_mm512_set1_epi32(offset[ch]), _mm512_set1_ps(scale[ch]));
                 let q = requant_lanes(_mm512_castps_si512(*r), o, c, exact, y0);
-                // SAFETY: channel ch < rows, positions k0 .. k0 + m (the caller's promise).
-                unsafe { _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + k0).cast(), keep, q) };
+                // SAFETY: channel ch < rows, places k0 .. k0 + m, whose positions are consecutive
+                // (the caller's promise).
+                unsafe { _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + places[k0].1).cast(), keep, q) };
             }
         }
     }
