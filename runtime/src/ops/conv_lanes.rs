@@ -301,7 +301,7 @@ pub(super) unsafe fn store_by_channel<T: Copy, U>(
 
 /// `act(sum + bias)` of an item's f32 sums stored as [`store_by_channel`] does (the same
 /// values), on AVX-512 16 places at a time where the places are consecutive outputs (as an
-/// item's real positions are): each channel's 16 sums gathered and stored as one vector.
+/// item's real positions are): each channel's 16 values stored as one vector.
 ///
 /// # Safety
 /// As [`store_by_channel`]; `bias` holds channels `first .. first + rows`.
@@ -319,7 +319,7 @@ unsafe fn store_sums(
     #[cfg(target_arch = "x86_64")]
     if crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512
         && places.windows(2).all(|p| p[1].1 == p[0].1 + 1)
-        && sums.len() <= i32::MAX as usize
+        && places.iter().all(|&(i, _)| i + rows.div_ceil(L) * L <= sums.len())
     {
         // SAFETY: the CPU has AVX-512F; the caller's promises; the places are consecutive.
         return unsafe { store_sums_avx512(dst, sums, first, rows, plane, places, bias, act) };
@@ -328,16 +328,18 @@ unsafe fn store_sums(
     unsafe { store_by_channel(dst, sums, first, rows, plane, places, |o, s| act.apply(s + bias[o])) }
 }
 
-/// [`store_sums`] on AVX-512: for each channel, the sums of 16 places at a time gathered
-/// (their indices made once per item), `act(sum + bias)` in registers and stored as one
-/// vector (masked for the last places). The scalar stores took a quarter of PRL-Track's
+/// [`store_sums`] on AVX-512: 16 places at a time, each 16-channel group of their sums
+/// transposed in registers (16 x 16), then each channel's 16 values `act(sum + bias)` stored as
+/// one vector (masked for the last places). The scalar stores took a quarter of PRL-Track's
 /// first layer (3 input channels, 363 taps: an output for every 363 multiply-adds); alone on
-/// one thread of an AVX-512 Xeon, the template's first layer took 1.61-1.63 ms so, 1.45-1.47
-/// now, 1.21 without any store; the search graph's 8.7-9.6 ms, 8.2-8.5 now, 6.4-6.5.
+/// one thread of an AVX-512 Xeon, the template's first layer took 1.61-1.63 ms so, 1.21
+/// without any store. Gathering each channel's 16 sums instead of the transpose: 1.45-1.47 ms
+/// (the transpose 4-5% faster in an alternation), and the search graph's first layer 18%
+/// slower than with the transpose (10.3-10.4 ms against 8.3-8.6).
 ///
 /// # Safety
-/// The CPU has AVX-512F; as [`store_sums`]; the places' output positions are consecutive and
-/// their indices fit an `i32`.
+/// The CPU has AVX-512F; as [`store_sums`]; the places' output positions are consecutive;
+/// every place's sums hold `rows` rounded up to 16 values.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[allow(clippy::too_many_arguments)]
@@ -352,27 +354,57 @@ unsafe fn store_sums_avx512(
     act: Activation,
 ) {
     use std::arch::x86_64::*;
-    let groups: Vec<(__m512i, u16, usize)> = places
-        .chunks(16)
-        .map(|g| {
-            let idx: [i32; 16] = std::array::from_fn(|k| g.get(k).map_or(0, |p| p.0 as i32));
-            // SAFETY: 16 values.
-            let idx = unsafe { _mm512_loadu_si512(idx.as_ptr().cast()) };
-            (idx, ((1u32 << g.len()) - 1) as u16, g[0].1)
-        })
-        .collect();
-    for r in 0..rows {
-        let o = first + r;
-        let b = _mm512_set1_ps(bias[o]);
-        for &(idx, mask, at) in &groups {
-            // SAFETY: the gathered sums are `sums[place + r]`, `r < rows <= oc` within each
-            // place's `oc` values; the store is masked to the group's places, consecutive from
-            // `at` within the plane (the caller's promises).
-            unsafe {
-                let v = _mm512_mask_i32gather_ps::<4>(_mm512_setzero_ps(), mask, idx, sums.as_ptr().add(r).cast());
-                _mm512_mask_storeu_ps(dst.at(o * plane + at), mask, act.apply_avx512(_mm512_add_ps(v, b)));
+    for k0 in (0..places.len()).step_by(L) {
+        let m = (places.len() - k0).min(L);
+        let keep = ((1u32 << m) - 1) as u16;
+        let at = places[k0].1;
+        for j in 0..rows.div_ceil(L) {
+            let mut r = [_mm512_setzero_ps(); L];
+            for (i, r) in r.iter_mut().enumerate().take(m) {
+                // SAFETY: channels 16j .. 16j + 16 of place k0 + i's sums (the caller's
+                // promise: `rows` rounded up to 16 of them).
+                *r = unsafe { _mm512_loadu_ps(sums.as_ptr().add(places[k0 + i].0 + L * j)) };
+            }
+            transpose(&mut r);
+            for (c, r) in r.iter().enumerate().take((rows - L * j).min(L)) {
+                let o = first + L * j + c;
+                let v = act.apply_avx512(_mm512_add_ps(*r, _mm512_set1_ps(bias[o])));
+                // SAFETY: channel `o` at the `m` consecutive positions from `at`, within its
+                // plane and this caller's alone (the caller's promises).
+                unsafe { _mm512_mask_storeu_ps(dst.at(o * plane + at), keep, v) };
             }
         }
+    }
+}
+
+/// Transpose sixteen 16-lane rows in place (`r[i][j]` becomes `r[j][i]`; the lanes' bits as they
+/// are): pairs interleaved, then quads, then 128-bit lanes twice.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+pub(super) fn transpose(r: &mut [std::arch::x86_64::__m512; 16]) {
+    use std::arch::x86_64::*;
+    let mut t = [_mm512_setzero_ps(); 16];
+    for i in 0..8 {
+        t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+        t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+    }
+    for i in 0..4 {
+        let (a, b, c, d) = (t[4 * i], t[4 * i + 1], t[4 * i + 2], t[4 * i + 3]);
+        r[4 * i] = _mm512_shuffle_ps::<0x44>(a, c);
+        r[4 * i + 1] = _mm512_shuffle_ps::<0xEE>(a, c);
+        r[4 * i + 2] = _mm512_shuffle_ps::<0x44>(b, d);
+        r[4 * i + 3] = _mm512_shuffle_ps::<0xEE>(b, d);
+    }
+    for g in [0, 8] {
+        for j in 0..4 {
+            t[g + j] = _mm512_shuffle_f32x4::<0x88>(r[g + j], r[g + j + 4]);
+            t[g + j + 4] = _mm512_shuffle_f32x4::<0xDD>(r[g + j], r[g + j + 4]);
+        }
+    }
+    for j in 0..8 {
+        r[j] = _mm512_shuffle_f32x4::<0x88>(t[j], t[j + 8]);
+        r[j + 8] = _mm512_shuffle_f32x4::<0xDD>(t[j], t[j + 8]);
     }
 }
 

@@ -9,6 +9,8 @@
 //! formula lane by lane (each lane its channel's offset and scale), so the bytes are the same.
 
 use super::conv_kernel::Layout;
+#[cfg(target_arch = "x86_64")]
+use super::conv_lanes::transpose;
 use super::conv_lanes::{for_each_item, places, store_by_channel, Lanes};
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::requant_lanes;
@@ -219,37 +221,6 @@ unsafe fn requant_transposed(
                 unsafe { _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + places[k0].1).cast(), keep, q) };
             }
         }
-    }
-}
-
-/// Transpose sixteen 16-lane rows in place (`r[i][j]` becomes `r[j][i]`; the lanes' bits as they
-/// are): pairs interleaved, then quads, then 128-bit lanes twice.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-#[inline]
-fn transpose(r: &mut [std::arch::x86_64::__m512; 16]) {
-    use std::arch::x86_64::*;
-    let mut t = [_mm512_setzero_ps(); 16];
-    for i in 0..8 {
-        t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
-        t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
-    }
-    for i in 0..4 {
-        let (a, b, c, d) = (t[4 * i], t[4 * i + 1], t[4 * i + 2], t[4 * i + 3]);
-        r[4 * i] = _mm512_shuffle_ps::<0x44>(a, c);
-        r[4 * i + 1] = _mm512_shuffle_ps::<0xEE>(a, c);
-        r[4 * i + 2] = _mm512_shuffle_ps::<0x44>(b, d);
-        r[4 * i + 3] = _mm512_shuffle_ps::<0xEE>(b, d);
-    }
-    for g in [0, 8] {
-        for j in 0..4 {
-            t[g + j] = _mm512_shuffle_f32x4::<0x88>(r[g + j], r[g + j + 4]);
-            t[g + j + 4] = _mm512_shuffle_f32x4::<0xDD>(r[g + j], r[g + j + 4]);
-        }
-    }
-    for j in 0..8 {
-        r[j] = _mm512_shuffle_f32x4::<0x88>(t[j], t[j + 8]);
-        r[j + 8] = _mm512_shuffle_f32x4::<0xDD>(t[j], t[j + 8]);
     }
 }
 
