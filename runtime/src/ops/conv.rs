@@ -478,8 +478,8 @@ impl EvalOp for PackedConv {
         let fill = |out: &mut [f32]| {
             super::with_padded(Self::padded_len(s), &self.borders, |padded| {
                 for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
-                    // The channels padded side by side (serial, PRL-Track's search layers 2
-                    // and 3 spent 0.1-0.2 ms here while the other threads waited).
+                    // The channels padded over the threads (one after another the other threads
+                    // waited: 1.8 MB of input for the search graph's second layer).
                     let plane_in = phases * hq * wq;
                     par_chunks(&mut padded[..ci * plane_in], plane_in, |c, dst| {
                         s.pad_plane(&src[c * h * w..(c + 1) * h * w], dst)

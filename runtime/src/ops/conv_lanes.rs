@@ -169,7 +169,7 @@ impl LanePack {
         let wide = ((oh - 1) * wp + ow).div_ceil(wide_px) * wide_px * co.div_ceil(wide_channels) * wide_channels;
         let px = compact_tile_positions(v);
         let compact = (oh * ow).div_ceil(px) * px * co.div_ceil(L * v) * L * v;
-        let compact = co >= L && shape.ci >= L && compact * 20 < wide * 19 && std::env::var("XWIDE").is_err();
+        let compact = co >= L && shape.ci >= L && compact * 20 < wide * 19;
         (compact || v > 1).then_some((v, compact))
     }
 
@@ -271,10 +271,11 @@ impl LanePack {
     }
 }
 
-/// Store an item's sums (`[position][channel]`; the int8 tiles' requantised bytes) into channels `first ..` (`rows` of them) of
-/// `dst`'s planes of `plane` values as `f(channel, sum)`, for every `(index in sums, place in
-/// the plane)` of `places` (a real output position's first sum and its place): channel by
-/// channel, so that consecutive stores fall in one plane. Position by position they fell in
+/// Store an item's sums (`[position][channel]`; or the int8 tiles' requantised bytes) into
+/// channels `first ..` (`rows` of them) of `dst`'s planes of `plane` values as `f(channel,
+/// sum)`, for every `(index in sums, place in the plane)` of `places` (a real output
+/// position's first sum and its place): channel by channel, so that consecutive stores fall in
+/// one plane. Position by position they fell in
 /// `rows` planes at once: PRL-Track's first layer (3 input channels, 363 taps, so many outputs
 /// for its products) took 1.78-1.83 ms so alone on one thread of an AVX-512 Xeon, 1.65 now.
 ///
