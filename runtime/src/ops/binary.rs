@@ -12,10 +12,7 @@ use tract_nnef::tract_core::ops::binary::TypedBinOp;
 use tract_nnef::tract_core::ops::math::{Add, Mul};
 
 use super::act::{Activation, Tail};
-
-/// Values in one share of the work handed to the pool's threads (whole rows): an output of
-/// fewer stays on the calling thread.
-const SHARE: usize = 1 << 15;
+use super::SHARE;
 
 /// Which operation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

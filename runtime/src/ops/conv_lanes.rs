@@ -355,24 +355,50 @@ unsafe fn store_sums_avx512(
     act: Activation,
 ) {
     use std::arch::x86_64::*;
+    let store = |c: usize, r: __m512, at: usize, keep: u16| {
+        let o = first + c;
+        let v = act.apply_avx512(_mm512_add_ps(r, _mm512_set1_ps(bias[o])));
+        // SAFETY: channel `o` at the consecutive positions from `at` that `keep` marks, within
+        // its plane and this caller's alone (the caller's promises).
+        unsafe { _mm512_mask_storeu_ps(dst.at(o * plane + at), keep, v) };
+    };
+    // SAFETY: the CPU has AVX-512F.
+    unsafe { by_channel_avx512(sums, rows, places, store) }
+}
+
+/// The walk the AVX-512 stores of the f32 and int8 tiles share ([`store_sums_avx512`] and
+/// `qconv_lanes`' requantisation): the sums of 16 places at a time (each place's sums from
+/// index `places[k].0`, their output positions consecutive) transposed 16 x 16 in registers a
+/// group of 16 channels at a time, then `f(channel, its 16 values, the first place's position,
+/// the places kept)` for every channel below `rows`. Sums of 4-byte integers come as their
+/// bits in f32 lanes.
+///
+/// # Safety
+/// The CPU has AVX-512F.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+pub(super) unsafe fn by_channel_avx512<T: Copy>(
+    sums: &[T],
+    rows: usize,
+    places: &[(usize, usize)],
+    mut f: impl FnMut(usize, std::arch::x86_64::__m512, usize, u16),
+) {
+    use std::arch::x86_64::*;
+    assert!(size_of::<T>() == 4 && places.iter().all(|&(i, _)| i + rows.div_ceil(L) * L <= sums.len()));
     for k0 in (0..places.len()).step_by(L) {
         let m = (places.len() - k0).min(L);
         let keep = ((1u32 << m) - 1) as u16;
-        let at = places[k0].1;
         for j in 0..rows.div_ceil(L) {
             let mut r = [_mm512_setzero_ps(); L];
             for (i, r) in r.iter_mut().enumerate().take(m) {
-                // SAFETY: channels 16j .. 16j + 16 of place k0 + i's sums (the caller's
-                // promise: `rows` rounded up to 16 of them).
-                *r = unsafe { _mm512_loadu_ps(sums.as_ptr().add(places[k0 + i].0 + L * j)) };
+                // SAFETY: channels 16j .. 16j + 16 of place k0 + i's sums, 4 bytes each
+                // (asserted).
+                *r = unsafe { _mm512_loadu_ps(sums.as_ptr().add(places[k0 + i].0 + L * j).cast()) };
             }
             transpose(&mut r);
             for (c, r) in r.iter().enumerate().take((rows - L * j).min(L)) {
-                let o = first + L * j + c;
-                let v = act.apply_avx512(_mm512_add_ps(*r, _mm512_set1_ps(bias[o])));
-                // SAFETY: channel `o` at the `m` consecutive positions from `at`, within its
-                // plane and this caller's alone (the caller's promises).
-                unsafe { _mm512_mask_storeu_ps(dst.at(o * plane + at), keep, v) };
+                f(L * j + c, *r, places[k0].1, keep);
             }
         }
     }
@@ -383,7 +409,7 @@ unsafe fn store_sums_avx512(
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-pub(super) fn transpose(r: &mut [std::arch::x86_64::__m512; 16]) {
+fn transpose(r: &mut [std::arch::x86_64::__m512; 16]) {
     use std::arch::x86_64::*;
     let mut t = [_mm512_setzero_ps(); 16];
     for i in 0..8 {
@@ -733,6 +759,31 @@ unsafe fn lane_tiles_avx512<const V: usize, const P: usize>(
 mod tests {
     use super::*;
     use crate::isa::F32Kernel;
+
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn transposes_sixteen_rows() {
+        if !crate::isa().avx512 {
+            eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): the 16 x 16 transpose is NOT tested here");
+            return;
+        }
+        use std::arch::x86_64::*;
+        let m: Vec<f32> = (0..256).map(|i| i as f32).collect();
+        // SAFETY: the CPU has AVX-512F (checked above); every load and store is 16 of the 256.
+        unsafe {
+            let mut r: [__m512; 16] = std::array::from_fn(|i| _mm512_loadu_ps(m.as_ptr().add(16 * i)));
+            transpose(&mut r);
+            let mut out = vec![0f32; 256];
+            for (i, r) in r.iter().enumerate() {
+                _mm512_storeu_ps(out.as_mut_ptr().add(16 * i), *r);
+            }
+            for i in 0..16 {
+                for j in 0..16 {
+                    assert_eq!(out[i * 16 + j], m[j * 16 + i], "({i}, {j})");
+                }
+            }
+        }
+    }
 
     /// The compact tiles (AVX2's of one register, AVX-512's of two and three, where the CPU
     /// has them) give the bits of the portable compact tiles and of the wide ones (every path

@@ -446,6 +446,12 @@ fn par_for(n: usize, f: impl Fn(usize) + Sync) {
     }
 }
 
+/// Values in one share of an element-wise operator's work handed to the pool's threads
+/// ([`par_chunks`]; [`QuantizeU8`], [`DequantizeU8`], [`BroadcastBinary`]'s whole rows): a
+/// tensor of fewer stays on the calling thread (a hand-over costs about what 30 000 elements
+/// take).
+const SHARE: usize = 1 << 15;
+
 /// Run `f(i, chunk)` on every `len`-long chunk of `out` (the last may be shorter), on tract's
 /// thread pool when it has one.
 fn par_chunks<T: Send>(out: &mut [T], len: usize, f: impl Fn(usize, &mut [T]) + Sync) {

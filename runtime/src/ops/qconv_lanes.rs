@@ -10,7 +10,7 @@
 
 use super::conv_kernel::Layout;
 #[cfg(target_arch = "x86_64")]
-use super::conv_lanes::transpose;
+use super::conv_lanes::by_channel_avx512;
 use super::conv_lanes::{for_each_item, places, store_by_channel, Lanes};
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::requant_lanes;
@@ -199,29 +199,17 @@ unsafe fn requant_transposed(
     places: &[(usize, usize)],
 ) {
     use std::arch::x86_64::*;
-    let n = places.len();
     assert!(offset.len() >= rows.div_ceil(L) * L && scale.len() >= rows.div_ceil(L) * L && oc.is_multiple_of(L));
     assert!(places.iter().all(|&(i, _)| i + oc <= sums.len()));
-    for k0 in (0..n).step_by(L) {
-        let m = (n - k0).min(L);
-        let keep = ((1u32 << m) - 1) as __mmask16;
-        for j in 0..rows.div_ceil(L) {
-            let mut r = [_mm512_setzero_ps(); L];
-            for (i, r) in r.iter_mut().enumerate().take(m) {
-                // SAFETY: place k0 + i < n, channels 16j .. 16j + 16 <= oc of its sums (asserted).
-                *r = unsafe { _mm512_loadu_ps(sums.as_ptr().add(places[k0 + i].0 + L * j).cast()) };
-            }
-            transpose(&mut r);
-            for (c, r) in r.iter().enumerate().take((rows - L * j).min(L)) {
-                let ch = L * j + c;
-                let (o, c) = (_mm512_set1_epi32(offset[ch]), _mm512_set1_ps(scale[ch]));
-                let q = requant_lanes(_mm512_castps_si512(*r), o, c, exact, y0);
-                // SAFETY: channel ch < rows, places k0 .. k0 + m, whose positions are consecutive
-                // (the caller's promise).
-                unsafe { _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + places[k0].1).cast(), keep, q) };
-            }
-        }
-    }
+    let store = |ch: usize, r: __m512, at: usize, keep: u16| {
+        let (o, c) = (_mm512_set1_epi32(offset[ch]), _mm512_set1_ps(scale[ch]));
+        let q = requant_lanes(_mm512_castps_si512(r), o, c, exact, y0);
+        // SAFETY: channel ch < rows, at the consecutive positions from `at` that `keep` marks
+        // (the caller's promise).
+        unsafe { _mm512_mask_cvtepi32_storeu_epi8(out.add(ch * plane + at).cast(), keep, q) };
+    };
+    // SAFETY: the CPU has AVX-512F.
+    unsafe { by_channel_avx512(sums, rows, places, store) }
 }
 
 /// The dot product of four u8 inputs and four i8 weights packed in words.
@@ -300,31 +288,6 @@ unsafe fn tiles_vnni<const V: usize, const P: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    #[cfg(target_arch = "x86_64")]
-    fn transposes_sixteen_rows() {
-        if !crate::isa().avx512 {
-            eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): the 16 x 16 transpose is NOT tested here");
-            return;
-        }
-        use std::arch::x86_64::*;
-        let m: Vec<f32> = (0..256).map(|i| i as f32).collect();
-        // SAFETY: the CPU has AVX-512F (checked above); every load and store is 16 of the 256.
-        unsafe {
-            let mut r: [__m512; 16] = std::array::from_fn(|i| _mm512_loadu_ps(m.as_ptr().add(16 * i)));
-            transpose(&mut r);
-            let mut out = vec![0f32; 256];
-            for (i, r) in r.iter().enumerate() {
-                _mm512_storeu_ps(out.as_mut_ptr().add(16 * i), *r);
-            }
-            for i in 0..16 {
-                for j in 0..16 {
-                    assert_eq!(out[i * 16 + j], m[j * 16 + i], "({i}, {j})");
-                }
-            }
-        }
-    }
 
     /// The dispatched tiles and requantisation give the portable ones' bytes, for both tile
     /// shapes, with a partial block and several chunks of tap groups.

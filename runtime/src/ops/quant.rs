@@ -11,7 +11,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::element_wise::ElementWiseOp;
 use tract_nnef::tract_core::ops::quant::{DequantizeLinearF32, QuantizeLinearU8};
 
-use super::{output_tensor, output_tensor_written, par_chunks};
+use super::{output_tensor, output_tensor_written, par_chunks, SHARE};
 
 /// `y = clamp(round_half_even(x * scale) + zero_point, 0, 255)` for f32 `x` (`scale` is the
 /// reciprocal of the tensor's quantisation step, as in tract's `QuantizeLinearU8`).
@@ -29,11 +29,6 @@ impl QuantizeU8 {
         QuantizeU8 { scale, zero_point }
     }
 }
-
-/// Elements in one share of the work [`QuantizeU8`] and [`DequantizeU8`] hand to the pool's
-/// threads: a tensor of fewer stays on the calling thread (a hand-over costs about what 30 000
-/// elements take).
-const SHARE: usize = 1 << 15;
 
 /// The portable formula: tract's for every value whose scaled magnitude fits an `i32`; NaN gives
 /// the zero point as there, and values beyond (±inf) saturate to 0 or 255, as ONNX's
