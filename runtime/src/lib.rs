@@ -54,7 +54,8 @@ pub use nnef::nnef;
 pub use ops::{
     accelerate, accelerate_with, own_operators, Accelerated, AttnMix, AttnScores, Binary, BroadcastBinary,
     ChannelMaxPool, ConstMatMul, ConvShape, DepthwiseConv, DepthwiseConvHwc, DepthwiseXCorr, DequantizeU8,
-    LayerNormCore, PackedConv, PackedQConv, PointwiseConv, QuantizeU8, RowSoftmax, SqueezeExcite, WinogradConv,
+    LayerNormCore, PackedConv, PackedQConv, Permute, PointwiseConv, QuantizeU8, RowSoftmax, SqueezeExcite,
+    WinogradConv,
 };
 pub use plan::{set_threads, spread, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures, Threads};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};

@@ -20,6 +20,7 @@ mod dwconv;
 mod dwconv_hwc;
 mod matmul;
 mod norm;
+mod permute;
 mod pointwise;
 mod pool;
 mod qconv;
@@ -39,6 +40,7 @@ pub use dwconv::DepthwiseConv;
 pub use dwconv_hwc::DepthwiseConvHwc;
 pub use matmul::ConstMatMul;
 pub use norm::LayerNormCore;
+pub use permute::Permute;
 pub use pointwise::PointwiseConv;
 pub use pool::ChannelMaxPool;
 pub use qconv::PackedQConv;
@@ -100,6 +102,8 @@ pub struct Accelerated {
     /// Squeeze-excitation blocks (spatial mean, gate, per-channel product and the activation
     /// after it) made [`SqueezeExcite`].
     pub squeeze_excite: usize,
+    /// Chains of axis moves made [`Permute`].
+    pub permutes: usize,
 }
 
 /// [`accelerate_with`] the convolutions that `PRL_WINOGRAD` asks for as Winograd's (none when
@@ -177,6 +181,10 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
                 done.squeeze_excite += 1;
                 chain = c;
                 (Box::new(op), tvec![x])
+            } else if let Some((op, c)) = permute::permute(model, node)? {
+                done.permutes += 1;
+                chain = c;
+                (Box::new(op), tvec![node.inputs[0]])
             } else if xcorr::matches(model, node)? {
                 done.correlations += 1;
                 (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())
@@ -397,7 +405,7 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         {
             "avx2 (vectorised)".to_string()
         }
-        "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" => "portable (vectorised)".to_string(),
+        "ChannelMaxPool" | "LayerNormCore" | "BroadcastBinary" | "Permute" => "portable (vectorised)".to_string(),
         _ => info
             .split(|c: char| !(c.is_alphanumeric() || c == '_'))
             .find(|w| w.contains("_mmm_"))
