@@ -176,6 +176,14 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
                 (Box::new(op), tvec![node.inputs[0]])
             } else if let Some(op) = quant::dequantize_u8(model, node)? {
                 done.quantizers += 1;
+                let shape = node.outputs[0].fact.shape.as_concrete().unwrap_or_default();
+                let op = match act::tail(model, node, None)?.and_then(|t| Some((op.fused(&t, shape)?, t.chain))) {
+                    Some((fused, c)) => {
+                        chain = c;
+                        fused
+                    }
+                    None => op,
+                };
                 (Box::new(op), tvec![node.inputs[0]])
             } else if let Some((op, x, c)) = se::squeeze_excite(model, node)? {
                 done.squeeze_excite += 1;

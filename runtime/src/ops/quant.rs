@@ -11,6 +11,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::element_wise::ElementWiseOp;
 use tract_nnef::tract_core::ops::quant::{DequantizeLinearF32, QuantizeLinearU8};
 
+use super::act::{Activation, Tail};
 use super::{output_tensor, output_tensor_written, par_chunks, SHARE};
 
 /// `y = clamp(round_half_even(x * scale) + zero_point, 0, 255)` for f32 `x` (`scale` is the
@@ -167,10 +168,15 @@ pub(crate) fn quantize_u8(model: &TypedModel, node: &TypedNode) -> TractResult<O
 /// path), on vector lanes and, for large tensors, over the pool's threads. tract's loop, one
 /// element at a time through a generic conversion, took 0.11-0.2 ms for each of PRL-Track's
 /// backbone features (0.9 ms of a 42 ms int8 search step, and none of it split over threads).
+///
+/// The activation after it (a clamp, tract's hard-swish: [`super::act::tail`]) is applied to
+/// each share of the output as it is written, not in a pass of its own (NanoTrack's int8 plan:
+/// a hard-swish or a ReLU after most of its integer convolutions).
 #[derive(Debug, Clone, PartialEq)]
 pub struct DequantizeU8 {
     scale: f32,
     zero_point: i32,
+    act: Activation,
 }
 
 impl Eq for DequantizeU8 {}
@@ -178,7 +184,13 @@ impl Eq for DequantizeU8 {}
 impl DequantizeU8 {
     /// The dequantiser with `scale` (the step) and `zero_point`.
     pub fn new(scale: f32, zero_point: i32) -> Self {
-        DequantizeU8 { scale, zero_point }
+        DequantizeU8 { scale, zero_point, act: Activation::NONE }
+    }
+
+    /// This dequantiser with the activation of `tail` after it, where the tail ends in the
+    /// same `shape` and adds no bias.
+    pub(crate) fn fused(&self, tail: &Tail, shape: &[usize]) -> Option<DequantizeU8> {
+        (tail.bias.is_none() && tail.shape.as_slice() == shape).then(|| DequantizeU8 { act: tail.act, ..self.clone() })
     }
 }
 
@@ -224,7 +236,7 @@ impl Op for DequantizeU8 {
     }
 
     fn info(&self) -> TractResult<Vec<String>> {
-        Ok(vec![format!("scale: {} zero_point: {}", self.scale, self.zero_point)])
+        Ok(vec![format!("scale: {} zero_point: {}, activation {}", self.scale, self.zero_point, self.act.describe())])
     }
 
     op_as_typed_op!();
@@ -240,11 +252,14 @@ impl EvalOp for DequantizeU8 {
         // SAFETY: u8, possibly with quantisation parameters (checked when the op was made).
         let xs = unsafe { xs.as_slice_unchecked::<u8>() };
         let share = SHARE;
-        let (scale, zp) = (self.scale, self.zero_point);
+        let (scale, zp, act) = (self.scale, self.zero_point, self.act);
         // SAFETY: the chunks cover the whole output, and each is written whole.
         let out = unsafe {
             output_tensor_written(&shape, |ys| {
-                par_chunks(ys, share, |i, ys| dequantize::dequantize(&xs[i * share..][..ys.len()], ys, scale, zp));
+                par_chunks(ys, share, |i, ys| {
+                    dequantize::dequantize(&xs[i * share..][..ys.len()], ys, scale, zp);
+                    act.apply_all(ys);
+                });
                 Ok(())
             })?
         };
@@ -370,6 +385,43 @@ mod tests {
                 let bad = got.iter().zip(&want).position(|(a, b)| a.to_bits() != b.to_bits());
                 assert!(bad.is_none(), "{name}, scale {scale}, zero point {zp}: element {}", bad.unwrap());
             }
+        }
+        Ok(())
+    }
+
+    /// A dequantisation with the activations NanoTrack's int8 plan puts after it (tract's
+    /// hard-swish; a ReLU6 as `Max` then `Min`), by tract and after [`accelerate`]: one op,
+    /// the same bits.
+    #[test]
+    fn the_activation_after_a_dequantisation_is_fused_with_the_same_bits() -> TractResult<()> {
+        use tract_nnef::tract_core::ops::math::{max, min};
+        use tract_nnef::tract_core::ops::nn::hard_swish;
+        let n = 3 * SHARE + 101;
+        let xs: Vec<u8> = (0..n).map(|i| (i * 7919 % 256) as u8).collect();
+        let input = tensor1(&xs).into_shape(&[1, n])?;
+        let tails: [(&str, fn(&mut TypedModel, OutletId) -> TractResult<OutletId>); 2] = [
+            ("hard-swish", |m, y| Ok(m.wire_node("hs", hard_swish(), &[y])?[0])),
+            ("relu6", |m, y| {
+                let (lo, hi) = (m.add_const("lo", tensor2(&[[0f32]]))?, m.add_const("hi", tensor2(&[[6f32]]))?);
+                let y = m.wire_node("max", max(), &[y, lo])?[0];
+                Ok(m.wire_node("min", min(), &[y, hi])?[0])
+            }),
+        ];
+        for (name, tail) in tails {
+            let mut model = TypedModel::default();
+            let x = model.add_source("x", u8::fact([1, n]))?;
+            let y = model.wire_node("dq", DequantizeLinearF32 { scale: 0.0471, zero_point: 117 }, &[x])?[0];
+            let y = tail(&mut model, y)?;
+            model.select_output_outlets(&[y])?;
+            let want = model.clone().into_runnable()?.run(tvec![input.clone().into_tvalue()])?;
+            let done = super::super::accelerate(&mut model)?;
+            assert_eq!(done.quantizers, 1, "{name}");
+            assert_eq!(model.nodes().len(), 2, "{name}: the source and one op");
+            let got = model.into_runnable()?.run(tvec![input.clone().into_tvalue()])?;
+            let (got, want) = (got[0].try_as_plain_ram()?, want[0].try_as_plain_ram()?);
+            let (got, want) = (got.as_slice::<f32>()?, want.as_slice::<f32>()?);
+            let bad = got.iter().zip(want).position(|(a, b)| a.to_bits() != b.to_bits());
+            assert!(bad.is_none(), "{name}: element {}", bad.unwrap());
         }
         Ok(())
     }
