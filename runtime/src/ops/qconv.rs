@@ -31,9 +31,9 @@ use super::conv_kernel::Layout;
 use super::qconv_amx::AmxWeights;
 #[cfg(target_arch = "aarch64")]
 use super::qconv_kernel::tiles_sdot;
-#[cfg(target_arch = "x86_64")]
-use super::qconv_kernel::tiles_vnni_requant;
 use super::qconv_kernel::{avx2_pairs, bytemuck_words, requantise, tiles_avx2, tiles_vnni, EXACT_SCALES};
+#[cfg(target_arch = "x86_64")]
+use super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant};
 use super::qconv_lanes::QLanePack;
 use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits, ConvShape};
 
@@ -303,6 +303,30 @@ impl PackedQConv {
                         words,
                         taps,
                         weights,
+                        positions,
+                        out.len() / plane,
+                        (q.0, q.1, self.exact, self.y0),
+                        out.as_mut_ptr(),
+                        plane,
+                    )
+                };
+            });
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if path == WordsPath::Avx2 && wq == ow && s.kh * s.kw == 1 && s.stride == 1 {
+            // The same on AVX2, eight positions at a time.
+            let pairs = self.pairs.as_deref().expect("the AVX2 path's pairs are packed with the op");
+            par_chunks(dst, ROWS * plane, |b, out| {
+                let pairs = &pairs[2 * b * taps.len() * ROWS..2 * (b + 1) * taps.len() * ROWS];
+                let q = (&self.offset[b * ROWS..(b + 1) * ROWS], &self.scale[b * ROWS..(b + 1) * ROWS]);
+                // SAFETY: the path is AVX2's ([`words_path`]: the CPU has AVX2 and FMA); as
+                // above, with two words of `pairs` per weight word.
+                unsafe {
+                    tiles_avx2_requant(
+                        words,
+                        taps,
+                        pairs,
                         positions,
                         out.len() / plane,
                         (q.0, q.1, self.exact, self.y0),

@@ -66,23 +66,40 @@ unsafe fn requantise_avx2(sums: &[i32], offset: i32, scale: f32, exact: bool, y0
     for (s, o) in (&mut chunks).zip(&mut outs) {
         // SAFETY: 8 i32 in, 8 bytes out.
         unsafe {
-            let x = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_loadu_si256(s.as_ptr().cast()), off));
-            let p = _mm256_mul_ps(x, sc);
-            let mut r = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(p);
-            if exact {
-                r = exact_avx2(x, sc, p, r);
-            }
-            let f = _mm256_add_ps(r, y);
-            let f = _mm256_min_ps(_mm256_max_ps(f, _mm256_setzero_ps()), _mm256_set1_ps(255.0));
-            let i = _mm256_cvttps_epi32(f);
-            // Eight values in 0..=255: narrowing with unsigned saturation keeps them.
-            let w = _mm_packus_epi32(_mm256_castsi256_si128(i), _mm256_extracti128_si256::<1>(i));
-            _mm_storel_epi64(o.as_mut_ptr().cast(), _mm_packus_epi16(w, w));
+            let v = _mm256_loadu_si256(s.as_ptr().cast());
+            _mm_storel_epi64(o.as_mut_ptr().cast(), requant8(v, off, sc, y, exact));
         }
     }
     for (o, &s) in outs.into_remainder().iter_mut().zip(chunks.remainder()) {
         *o = requant_one(s + offset, scale, exact, y0);
     }
+}
+
+/// [`requant_one`] of eight sums `v` (offset `off`, scale `sc`, output zero point `y`, all
+/// broadcast), as eight bytes in the low half of the result.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn requant8(
+    v: std::arch::x86_64::__m256i,
+    off: std::arch::x86_64::__m256i,
+    sc: std::arch::x86_64::__m256,
+    y: std::arch::x86_64::__m256,
+    exact: bool,
+) -> std::arch::x86_64::__m128i {
+    use std::arch::x86_64::*;
+    let x = _mm256_cvtepi32_ps(_mm256_add_epi32(v, off));
+    let p = _mm256_mul_ps(x, sc);
+    let mut r = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(p);
+    if exact {
+        r = exact_avx2(x, sc, p, r);
+    }
+    let f = _mm256_add_ps(r, y);
+    let f = _mm256_min_ps(_mm256_max_ps(f, _mm256_setzero_ps()), _mm256_set1_ps(255.0));
+    let i = _mm256_cvttps_epi32(f);
+    // Eight values in 0..=255: narrowing with unsigned saturation keeps them.
+    let w = _mm_packus_epi32(_mm256_castsi256_si128(i), _mm256_extracti128_si256::<1>(i));
+    _mm_packus_epi16(w, w)
 }
 
 /// The exact product `x · scale` rounded half to even, from its f32 product `p` and that
@@ -394,6 +411,62 @@ pub(super) unsafe fn tiles_avx2(words: &[u32], taps: &[usize], pairs: &[i32], po
                 let s = sums.as_mut_ptr();
                 for (r, a) in a.iter().enumerate() {
                     _mm256_storeu_si256(s.add(r * PX + sub * 8).cast(), *a);
+                }
+            }
+        }
+    }
+}
+
+/// [`tiles_avx2`] with each group of 8 positions' sums requantised in registers ([`requant8`]:
+/// the same bytes) and stored in their channels' planes, as [`tiles_vnni_requant`] does on
+/// VNNI (same contract, `pairs` as [`tiles_avx2`] takes them).
+///
+/// # Safety
+/// As [`tiles_vnni_requant`], the CPU having AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+pub(super) unsafe fn tiles_avx2_requant(
+    words: &[u32],
+    taps: &[usize],
+    pairs: &[i32],
+    positions: usize,
+    rows: usize,
+    (offset, scale, exact, y0): (&[i32], &[f32], bool, u8),
+    out: *mut u8,
+    plane: usize,
+) {
+    use std::arch::x86_64::*;
+    assert!(rows <= ROWS && offset.len() >= rows && scale.len() >= rows && positions <= plane);
+    let low_bytes = _mm256_set1_epi32(0x00ff_00ff);
+    let y = _mm256_set1_ps(y0 as f32);
+    for first in (0..positions).step_by(8) {
+        // SAFETY: the caller guarantees every tile's `PX` words from each tap are in `words`
+        // (8 from `first` among them); `pairs` holds `2·ROWS` words per tap; the stores stay
+        // within the first `positions` bytes of each of the `rows` planes.
+        unsafe {
+            let base = words.as_ptr().add(first).cast::<i32>();
+            let mut a = [_mm256_setzero_si256(); ROWS];
+            let mut w = pairs.as_ptr();
+            for &t in taps {
+                let x = _mm256_loadu_si256(base.add(t).cast());
+                let (lo, hi) = (_mm256_and_si256(x, low_bytes), _mm256_srli_epi16::<8>(x));
+                for (r, a) in a.iter_mut().enumerate() {
+                    let p = _mm256_madd_epi16(lo, _mm256_set1_epi32(*w.add(2 * r)));
+                    let q = _mm256_madd_epi16(hi, _mm256_set1_epi32(*w.add(2 * r + 1)));
+                    *a = _mm256_add_epi32(*a, _mm256_add_epi32(p, q));
+                }
+                w = w.add(2 * ROWS);
+            }
+            let n = (positions - first).min(8);
+            for (r, a) in a.iter().enumerate().take(rows) {
+                let b = requant8(*a, _mm256_set1_epi32(offset[r]), _mm256_set1_ps(scale[r]), y, exact);
+                let at = out.add(r * plane + first);
+                if n == 8 {
+                    _mm_storel_epi64(at.cast(), b);
+                } else {
+                    let bytes = (_mm_cvtsi128_si64(b) as u64).to_le_bytes();
+                    std::ptr::copy_nonoverlapping(bytes.as_ptr(), at, n);
                 }
             }
         }
