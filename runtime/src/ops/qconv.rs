@@ -395,9 +395,10 @@ impl PackedQConv {
 }
 
 /// `words[x] = [rows[0][x], rows[1][x], rows[2][x], rows[3][x]] ^ flip` for every `x` of the
-/// words: four channels' bytes side by side. On x86 sixteen positions at a time with SSE2's
+/// words: four channels' bytes side by side. Sixteen positions at a time, on x86 with SSE2's
 /// byte and word unpacks (the byte-by-byte loop took a quarter of a 1x1 layer's time on
-/// NanoTrack's head: 5.6 of 21 µs).
+/// NanoTrack's head: 5.6 of 21 µs), on aarch64 with NEON's four-way interleaving store. (`flip`
+/// is the same byte four times: 0, or 0x80 for SDOT's i8 inputs.)
 fn interleave4(rows: [&[u8]; 4], words: &mut [u32], flip: u32) {
     let n = words.len();
     assert!(rows.iter().all(|r| r.len() >= n));
@@ -421,6 +422,23 @@ fn interleave4(rows: [&[u8]; 4], words: &mut [u32], flip: u32) {
                 _mm_storeu_si128(out.add(1), _mm_xor_si128(_mm_unpackhi_epi16(lo01, lo23), f));
                 _mm_storeu_si128(out.add(2), _mm_xor_si128(_mm_unpacklo_epi16(hi01, hi23), f));
                 _mm_storeu_si128(out.add(3), _mm_xor_si128(_mm_unpackhi_epi16(hi01, hi23), f));
+                done += 16;
+            }
+        }
+    }
+    #[cfg(target_arch = "aarch64")]
+    {
+        use std::arch::aarch64::*;
+        // SAFETY: NEON is part of aarch64; every load reads 16 bytes at `x < n - 15` of rows at
+        // least `n` long; `st4` stores 64 bytes, words `x..x + 16` of `n`, each word its four
+        // rows' bytes in order.
+        unsafe {
+            let f = vreinterpretq_u8_u32(vdupq_n_u32(flip));
+            while done + 16 <= n {
+                let x = done;
+                let load = |r: &[u8]| veorq_u8(vld1q_u8(r.as_ptr().add(x)), f);
+                let v = uint8x16x4_t(load(rows[0]), load(rows[1]), load(rows[2]), load(rows[3]));
+                vst4q_u8(words.as_mut_ptr().add(x).cast(), v);
                 done += 16;
             }
         }
@@ -865,6 +883,23 @@ mod tests {
             let got = out.as_slice::<u8>().unwrap();
             if let Some(i) = (0..want.len()).find(|&i| got[i] != want[i]) {
                 panic!("{isa}, {s:?}: output {i} is {} instead of {}", got[i], want[i]);
+            }
+        }
+    }
+
+    /// Four rows' bytes interleaved into words, flipped or not, with lengths around the vector
+    /// paths' sixteen: the scalar formula's words.
+    #[test]
+    fn interleaving_four_rows_gives_each_position_s_word() {
+        for n in [0, 5, 16, 31, 48, 117] {
+            let rows: Vec<Vec<u8>> = (0..4).map(|c| (0..n).map(|x| (x * 37 + c * 101 + 7) as u8).collect()).collect();
+            for flip in [0u32, 0x8080_8080] {
+                let mut got = vec![0u32; n];
+                interleave4([&rows[0], &rows[1], &rows[2], &rows[3]], &mut got, flip);
+                for (x, &w) in got.iter().enumerate() {
+                    let want = u32::from_ne_bytes([rows[0][x], rows[1][x], rows[2][x], rows[3][x]]) ^ flip;
+                    assert_eq!(w, want, "n {n}, flip {flip:x}, position {x}");
+                }
             }
         }
     }

@@ -399,7 +399,8 @@ mod tests {
         let n = 3 * SHARE + 101;
         let xs: Vec<u8> = (0..n).map(|i| (i * 7919 % 256) as u8).collect();
         let input = tensor1(&xs).into_shape(&[1, n])?;
-        let tails: [(&str, fn(&mut TypedModel, OutletId) -> TractResult<OutletId>); 2] = [
+        type Wire = fn(&mut TypedModel, OutletId) -> TractResult<OutletId>;
+        let tails: [(&str, Wire); 2] = [
             ("hard-swish", |m, y| Ok(m.wire_node("hs", hard_swish(), &[y])?[0])),
             ("relu6", |m, y| {
                 let (lo, hi) = (m.add_const("lo", tensor2(&[[0f32]]))?, m.add_const("hi", tensor2(&[[6f32]]))?);
