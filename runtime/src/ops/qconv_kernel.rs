@@ -292,25 +292,72 @@ pub(super) unsafe fn tiles_vnni(words: &[u32], taps: &[usize], weights: &[i32], 
     for (tile, sums) in sums.chunks_exact_mut(PX * ROWS).enumerate().take(positions.div_ceil(PX)) {
         // SAFETY: the caller guarantees the loads are in bounds.
         unsafe {
-            let base = words.as_ptr().add(tile * PX).cast::<i32>();
-            let mut a = [_mm512_setzero_si512(); 2 * ROWS];
-            let mut w = weights.as_ptr();
-            for &t in taps {
-                let x0 = _mm512_loadu_si512(base.add(t).cast());
-                let x1 = _mm512_loadu_si512(base.add(t + 16).cast());
-                for r in 0..ROWS {
-                    let b = _mm512_set1_epi32(*w.add(r));
-                    a[2 * r] = _mm512_dpbusd_epi32(a[2 * r], x0, b);
-                    a[2 * r + 1] = _mm512_dpbusd_epi32(a[2 * r + 1], x1, b);
-                }
-                w = w.add(ROWS);
-            }
+            let a = tile_vnni(words.as_ptr().add(tile * PX).cast(), taps, weights);
             let s = sums.as_mut_ptr();
             for (q, a) in a.iter().enumerate() {
                 _mm512_storeu_si512(s.add(16 * q).cast(), *a);
             }
         }
     }
+}
+
+/// One tile's sums on VNNI: `ROWS` channels x `PX` positions from `base` (two registers a
+/// channel), over every tap.
+///
+/// # Safety
+/// The CPU has AVX-512F and VNNI; `PX` words from `base + t` are readable for every tap `t`;
+/// `weights` holds `ROWS` words per tap.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vnni")]
+#[inline]
+unsafe fn tile_vnni(base: *const i32, taps: &[usize], weights: &[i32]) -> [std::arch::x86_64::__m512i; 2 * ROWS] {
+    use std::arch::x86_64::*;
+    let mut a = [_mm512_setzero_si512(); 2 * ROWS];
+    let mut w = weights.as_ptr();
+    for &t in taps {
+        // SAFETY: the caller's promise.
+        unsafe {
+            let x0 = _mm512_loadu_si512(base.add(t).cast());
+            let x1 = _mm512_loadu_si512(base.add(t + 16).cast());
+            for r in 0..ROWS {
+                let b = _mm512_set1_epi32(*w.add(r));
+                a[2 * r] = _mm512_dpbusd_epi32(a[2 * r], x0, b);
+                a[2 * r + 1] = _mm512_dpbusd_epi32(a[2 * r + 1], x1, b);
+            }
+            w = w.add(ROWS);
+        }
+    }
+    a
+}
+
+/// One group of 8 positions' sums on AVX2 ([`tiles_avx2`]'s products): `ROWS` channels from
+/// `base`, over every tap.
+///
+/// # Safety
+/// The CPU has AVX2; 8 words from `base + t` are readable for every tap `t`; `pairs` holds
+/// `2·ROWS` words per tap.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn tile_avx2(base: *const i32, taps: &[usize], pairs: &[i32]) -> [std::arch::x86_64::__m256i; ROWS] {
+    use std::arch::x86_64::*;
+    let low_bytes = _mm256_set1_epi32(0x00ff_00ff);
+    let mut a = [_mm256_setzero_si256(); ROWS];
+    let mut w = pairs.as_ptr();
+    for &t in taps {
+        // SAFETY: the caller's promise.
+        unsafe {
+            let x = _mm256_loadu_si256(base.add(t).cast());
+            let (lo, hi) = (_mm256_and_si256(x, low_bytes), _mm256_srli_epi16::<8>(x));
+            for (r, a) in a.iter_mut().enumerate() {
+                let p = _mm256_madd_epi16(lo, _mm256_set1_epi32(*w.add(2 * r)));
+                let q = _mm256_madd_epi16(hi, _mm256_set1_epi32(*w.add(2 * r + 1)));
+                *a = _mm256_add_epi32(*a, _mm256_add_epi32(p, q));
+            }
+            w = w.add(2 * ROWS);
+        }
+    }
+    a
 }
 
 /// [`tiles_vnni`] with each tile's sums requantised where they are made ([`requant_lanes`]:
@@ -343,19 +390,7 @@ pub(super) unsafe fn tiles_vnni_requant(
     for tile in 0..positions.div_ceil(PX) {
         // SAFETY: the caller guarantees the loads are in bounds.
         unsafe {
-            let base = words.as_ptr().add(tile * PX).cast::<i32>();
-            let mut a = [_mm512_setzero_si512(); 2 * ROWS];
-            let mut w = weights.as_ptr();
-            for &t in taps {
-                let x0 = _mm512_loadu_si512(base.add(t).cast());
-                let x1 = _mm512_loadu_si512(base.add(t + 16).cast());
-                for r in 0..ROWS {
-                    let b = _mm512_set1_epi32(*w.add(r));
-                    a[2 * r] = _mm512_dpbusd_epi32(a[2 * r], x0, b);
-                    a[2 * r + 1] = _mm512_dpbusd_epi32(a[2 * r + 1], x1, b);
-                }
-                w = w.add(ROWS);
-            }
+            let a = tile_vnni(words.as_ptr().add(tile * PX).cast(), taps, weights);
             // The tile's real positions: all 32 but in the last.
             let n = (positions - tile * PX).min(PX);
             let keep = [(1u32 << n.min(16)) - 1, (1u32 << n.saturating_sub(16)) - 1].map(|m| m as u16);
@@ -389,25 +424,13 @@ pub(super) fn avx2_pairs(word: i32) -> [i32; 2] {
 #[target_feature(enable = "avx2,fma")]
 pub(super) unsafe fn tiles_avx2(words: &[u32], taps: &[usize], pairs: &[i32], positions: usize, sums: &mut [i32]) {
     use std::arch::x86_64::*;
-    let low_bytes = _mm256_set1_epi32(0x00ff_00ff);
     for (tile, sums) in sums.chunks_exact_mut(PX * ROWS).enumerate().take(positions.div_ceil(PX)) {
         for sub in 0..PX / 8 {
             // SAFETY: the caller guarantees every tile's `PX` words from each tap are in
             // `words`; `pairs` holds `2·ROWS` words per tap; `sums` holds a whole tile.
             unsafe {
                 let base = words.as_ptr().add(tile * PX + sub * 8).cast::<i32>();
-                let mut a = [_mm256_setzero_si256(); ROWS];
-                let mut w = pairs.as_ptr();
-                for &t in taps {
-                    let x = _mm256_loadu_si256(base.add(t).cast());
-                    let (lo, hi) = (_mm256_and_si256(x, low_bytes), _mm256_srli_epi16::<8>(x));
-                    for (r, a) in a.iter_mut().enumerate() {
-                        let p = _mm256_madd_epi16(lo, _mm256_set1_epi32(*w.add(2 * r)));
-                        let q = _mm256_madd_epi16(hi, _mm256_set1_epi32(*w.add(2 * r + 1)));
-                        *a = _mm256_add_epi32(*a, _mm256_add_epi32(p, q));
-                    }
-                    w = w.add(2 * ROWS);
-                }
+                let a = tile_avx2(base, taps, pairs);
                 let s = sums.as_mut_ptr();
                 for (r, a) in a.iter().enumerate() {
                     _mm256_storeu_si256(s.add(r * PX + sub * 8).cast(), *a);
@@ -438,7 +461,6 @@ pub(super) unsafe fn tiles_avx2_requant(
 ) {
     use std::arch::x86_64::*;
     assert!(rows <= ROWS && offset.len() >= rows && scale.len() >= rows && positions <= plane);
-    let low_bytes = _mm256_set1_epi32(0x00ff_00ff);
     let y = _mm256_set1_ps(y0 as f32);
     for first in (0..positions).step_by(8) {
         // SAFETY: the caller guarantees every tile's `PX` words from each tap are in `words`
@@ -446,18 +468,7 @@ pub(super) unsafe fn tiles_avx2_requant(
         // within the first `positions` bytes of each of the `rows` planes.
         unsafe {
             let base = words.as_ptr().add(first).cast::<i32>();
-            let mut a = [_mm256_setzero_si256(); ROWS];
-            let mut w = pairs.as_ptr();
-            for &t in taps {
-                let x = _mm256_loadu_si256(base.add(t).cast());
-                let (lo, hi) = (_mm256_and_si256(x, low_bytes), _mm256_srli_epi16::<8>(x));
-                for (r, a) in a.iter_mut().enumerate() {
-                    let p = _mm256_madd_epi16(lo, _mm256_set1_epi32(*w.add(2 * r)));
-                    let q = _mm256_madd_epi16(hi, _mm256_set1_epi32(*w.add(2 * r + 1)));
-                    *a = _mm256_add_epi32(*a, _mm256_add_epi32(p, q));
-                }
-                w = w.add(2 * ROWS);
-            }
+            let a = tile_avx2(base, taps, pairs);
             let n = (positions - first).min(8);
             for (r, a) in a.iter().enumerate().take(rows) {
                 let b = requant8(*a, _mm256_set1_epi32(offset[r]), _mm256_set1_ps(scale[r]), y, exact);
