@@ -162,28 +162,14 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
                 (Box::new(op), tvec![x])
             } else if let Some(op) = binary::broadcast_binary(model, node)? {
                 done.broadcasts += 1;
-                let shape = node.outputs[0].fact.shape.as_concrete().unwrap_or_default();
-                let op = match act::tail(model, node, None)?.and_then(|t| Some((op.fused(&t, shape)?, t.chain))) {
-                    Some((fused, c)) => {
-                        chain = c;
-                        fused
-                    }
-                    None => op,
-                };
+                let op = with_activation(model, node, op, BroadcastBinary::fused, &mut chain)?;
                 (Box::new(op), node.inputs.iter().copied().collect())
             } else if let Some(op) = quant::quantize_u8(model, node)? {
                 done.quantizers += 1;
                 (Box::new(op), tvec![node.inputs[0]])
             } else if let Some(op) = quant::dequantize_u8(model, node)? {
                 done.quantizers += 1;
-                let shape = node.outputs[0].fact.shape.as_concrete().unwrap_or_default();
-                let op = match act::tail(model, node, None)?.and_then(|t| Some((op.fused(&t, shape)?, t.chain))) {
-                    Some((fused, c)) => {
-                        chain = c;
-                        fused
-                    }
-                    None => op,
-                };
+                let op = with_activation(model, node, op, DequantizeU8::fused, &mut chain)?;
                 (Box::new(op), tvec![node.inputs[0]])
             } else if let Some((op, x, c)) = se::squeeze_excite(model, node)? {
                 done.squeeze_excite += 1;
@@ -237,6 +223,26 @@ fn with_tail<T: TypedOp>(
         None => op,
     };
     Ok((Box::new(op), tvec![node.inputs[0]]))
+}
+
+/// `op` standing for the element-wise `node` with the activation nodes after it taken in by
+/// `fuse` where it can (`chain` then lists them all; `fuse` gets the tail and `node`'s output
+/// shape), else `op` as it is.
+fn with_activation<T>(
+    model: &TypedModel,
+    node: &TypedNode,
+    op: T,
+    fuse: fn(&T, &act::Tail, &[usize]) -> Option<T>,
+    chain: &mut Vec<usize>,
+) -> TractResult<T> {
+    let shape = node.outputs[0].fact.shape.as_concrete().unwrap_or_default();
+    Ok(match act::tail(model, node, None)?.and_then(|t| Some((fuse(&op, &t, shape)?, t.chain))) {
+        Some((fused, c)) => {
+            *chain = c;
+            fused
+        }
+        None => op,
+    })
 }
 
 /// `outlet`, or the input of the cast that makes it where that cast only adds or drops
