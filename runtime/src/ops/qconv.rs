@@ -33,7 +33,7 @@ use super::qconv_amx::AmxWeights;
 use super::qconv_kernel::tiles_sdot;
 use super::qconv_kernel::{avx2_pairs, bytemuck_words, requantise, tiles_avx2, tiles_vnni, EXACT_SCALES};
 #[cfg(target_arch = "x86_64")]
-use super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant};
+use super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant, Planes};
 use super::qconv_lanes::QLanePack;
 use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits, ConvShape};
 
@@ -289,51 +289,40 @@ impl PackedQConv {
         });
         let (words, taps) = (&words, &self.layout.taps);
         #[cfg(target_arch = "x86_64")]
-        if path == WordsPath::Vnni && wq == ow && s.kh * s.kw == 1 && s.stride == 1 {
+        if matches!(path, WordsPath::Vnni | WordsPath::Avx2) && wq == ow && s.kh * s.kw == 1 && s.stride == 1 {
             // A 1x1 layer of stride 1: each tile of positions is consecutive outputs,
-            // requantised in the tile's registers.
+            // requantised in the tile's registers (VNNI's tiles of 32 positions, AVX2's of 8).
+            let per_block = taps.len() * ROWS;
             par_chunks(dst, ROWS * plane, |b, out| {
-                let weights = &self.weights[b * taps.len() * ROWS..(b + 1) * taps.len() * ROWS];
-                let q = (&self.offset[b * ROWS..(b + 1) * ROWS], &self.scale[b * ROWS..(b + 1) * ROWS]);
-                // SAFETY: the path is VNNI's ([`words_path`]: the CPU has AVX-512F and VNNI);
-                // every tile of every tap lies in `words` (padded by `PX + wp` words); the
-                // chunk holds `out.len() / plane <= ROWS` whole planes of `positions` bytes.
-                unsafe {
-                    tiles_vnni_requant(
-                        words,
-                        taps,
-                        weights,
-                        positions,
-                        out.len() / plane,
-                        (q.0, q.1, self.exact, self.y0),
-                        out.as_mut_ptr(),
-                        plane,
-                    )
+                let channels = b * ROWS..(b + 1) * ROWS;
+                let planes = Planes {
+                    out: out.as_mut_ptr(),
+                    plane,
+                    rows: out.len() / plane,
+                    offset: &self.offset[channels.clone()],
+                    scale: &self.scale[channels],
+                    exact: self.exact,
+                    y0: self.y0,
                 };
-            });
-            return;
-        }
-        #[cfg(target_arch = "x86_64")]
-        if path == WordsPath::Avx2 && wq == ow && s.kh * s.kw == 1 && s.stride == 1 {
-            // The same on AVX2, eight positions at a time.
-            let pairs = self.pairs.as_deref().expect("the AVX2 path's pairs are packed with the op");
-            par_chunks(dst, ROWS * plane, |b, out| {
-                let pairs = &pairs[2 * b * taps.len() * ROWS..2 * (b + 1) * taps.len() * ROWS];
-                let q = (&self.offset[b * ROWS..(b + 1) * ROWS], &self.scale[b * ROWS..(b + 1) * ROWS]);
-                // SAFETY: the path is AVX2's ([`words_path`]: the CPU has AVX2 and FMA); as
-                // above, with two words of `pairs` per weight word.
+                // SAFETY: the path is one the CPU has ([`words_path`]: AVX-512F and VNNI, or
+                // AVX2 and FMA); every tile of every tap lies in `words` (padded by `PX + wp`
+                // words); the chunk holds `rows <= ROWS` whole planes of `positions` bytes;
+                // `pairs` holds two words per weight word.
                 unsafe {
-                    tiles_avx2_requant(
-                        words,
-                        taps,
-                        pairs,
-                        positions,
-                        out.len() / plane,
-                        (q.0, q.1, self.exact, self.y0),
-                        out.as_mut_ptr(),
-                        plane,
-                    )
-                };
+                    if path == WordsPath::Vnni {
+                        let weights = &self.weights[b * per_block..(b + 1) * per_block];
+                        tiles_vnni_requant(words, taps, weights, positions, &planes)
+                    } else {
+                        let pairs = self.pairs.as_deref().expect("the AVX2 path's pairs are packed with the op");
+                        tiles_avx2_requant(
+                            words,
+                            taps,
+                            &pairs[2 * b * per_block..2 * (b + 1) * per_block],
+                            positions,
+                            &planes,
+                        )
+                    }
+                }
             });
             return;
         }

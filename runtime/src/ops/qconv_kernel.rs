@@ -301,6 +301,33 @@ pub(super) unsafe fn tiles_vnni(words: &[u32], taps: &[usize], weights: &[i32], 
     }
 }
 
+/// Where the requantising tiles ([`tiles_vnni_requant`], [`tiles_avx2_requant`]) store their
+/// bytes and how they requantise them: `rows` (at most `ROWS`) channels' planes of `plane`
+/// bytes from `out`, with each channel's offset and scale, the rounding ([`requant_one`]'s
+/// `exact`) and the output zero point.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+pub(super) struct Planes<'a> {
+    pub out: *mut u8,
+    pub plane: usize,
+    pub rows: usize,
+    pub offset: &'a [i32],
+    pub scale: &'a [f32],
+    pub exact: bool,
+    pub y0: u8,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<'a> Planes<'a> {
+    /// These planes, checked to hold `positions` outputs of every channel and the channels'
+    /// offsets and scales.
+    fn checked(&self, positions: usize) -> Planes<'a> {
+        let rows = self.rows;
+        assert!(rows <= ROWS && self.offset.len() >= rows && self.scale.len() >= rows && positions <= self.plane);
+        *self
+    }
+}
+
 /// One tile's sums on VNNI: `ROWS` channels x `PX` positions from `base` (two registers a
 /// channel), over every tap.
 ///
@@ -363,30 +390,19 @@ unsafe fn tile_avx2(base: *const i32, taps: &[usize], pairs: &[i32]) -> [std::ar
 /// [`tiles_vnni`] with each tile's sums requantised where they are made ([`requant_lanes`]:
 /// the same bytes) and stored as bytes in their channels' planes (`out + r·plane`), for layers
 /// whose `positions` are the plane's outputs in order (1x1, no padding): no sums stored and
-/// read back, no call per row of a tile. `rows` of the block's `ROWS` channels are real;
-/// `offset` and `scale` are theirs. (NanoTrack's 1x1 layers spent more time requantising sums
+/// read back, no call per row of a tile. Where and how: [`Planes`]. (NanoTrack's 1x1 layers spent more time requantising sums
 /// from memory, 32 at a time, than multiplying: 24 -> 96 channels on 32 x 32, 47 µs, of which
 /// 20 in the tiles.)
 ///
 /// # Safety
 /// The CPU has AVX-512F and VNNI; every tile's `PX` words from each tap are in `words`;
-/// `weights` holds `ROWS` words per tap; `out + r·plane + p` is writable for `r < rows`,
-/// `p < positions <= plane`.
+/// `weights` holds `ROWS` words per tap; `p.out + r·p.plane + q` is writable for `r < p.rows`,
+/// `q < positions`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vnni")]
-#[allow(clippy::too_many_arguments)]
-pub(super) unsafe fn tiles_vnni_requant(
-    words: &[u32],
-    taps: &[usize],
-    weights: &[i32],
-    positions: usize,
-    rows: usize,
-    (offset, scale, exact, y0): (&[i32], &[f32], bool, u8),
-    out: *mut u8,
-    plane: usize,
-) {
+pub(super) unsafe fn tiles_vnni_requant(words: &[u32], taps: &[usize], weights: &[i32], positions: usize, p: &Planes) {
     use std::arch::x86_64::*;
-    assert!(rows <= ROWS && offset.len() >= rows && scale.len() >= rows && positions <= plane);
+    let Planes { out, plane, rows, offset, scale, exact, y0 } = p.checked(positions);
     for tile in 0..positions.div_ceil(PX) {
         // SAFETY: the caller guarantees the loads are in bounds.
         unsafe {
@@ -448,19 +464,9 @@ pub(super) unsafe fn tiles_avx2(words: &[u32], taps: &[usize], pairs: &[i32], po
 /// As [`tiles_vnni_requant`], the CPU having AVX2 and FMA.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-#[allow(clippy::too_many_arguments)]
-pub(super) unsafe fn tiles_avx2_requant(
-    words: &[u32],
-    taps: &[usize],
-    pairs: &[i32],
-    positions: usize,
-    rows: usize,
-    (offset, scale, exact, y0): (&[i32], &[f32], bool, u8),
-    out: *mut u8,
-    plane: usize,
-) {
+pub(super) unsafe fn tiles_avx2_requant(words: &[u32], taps: &[usize], pairs: &[i32], positions: usize, p: &Planes) {
     use std::arch::x86_64::*;
-    assert!(rows <= ROWS && offset.len() >= rows && scale.len() >= rows && positions <= plane);
+    let Planes { out, plane, rows, offset, scale, exact, y0 } = p.checked(positions);
     let y = _mm256_set1_ps(y0 as f32);
     for first in (0..positions).step_by(8) {
         // SAFETY: the caller guarantees every tile's `PX` words from each tap are in `words`
