@@ -31,7 +31,7 @@ use super::conv_kernel::Layout;
 use super::qconv_amx::AmxWeights;
 #[cfg(target_arch = "aarch64")]
 use super::qconv_kernel::tiles_sdot;
-use super::qconv_kernel::{avx2_pairs, bytemuck_words, requantise, tiles_avx2, tiles_vnni, EXACT_SCALES};
+use super::qconv_kernel::{avx2_pairs, bytemuck_words, exact_fits, requantise, tiles_avx2, tiles_vnni};
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant, Planes};
 use super::qconv_lanes::QLanePack;
@@ -76,8 +76,8 @@ pub struct PackedQConv {
     /// The weights for VNNI tiles with the channels in the lanes (32 channels or more, no
     /// AMX), used instead of `weights` on VNNI.
     lanes: Option<Arc<QLanePack>>,
-    /// The data has a batch axis (NCHW); else it is CHW (tract drops a batch axis of 1).
-    batch: bool,
+    /// Whether the data has a batch axis (tract drops one of 1 in some graphs).
+    batch: Batch,
     /// Where the op is a matrix product (HMG's linear layers): its layouts.
     matmul: Option<Arc<Product>>,
 }
@@ -138,8 +138,8 @@ impl EvalOp for PackedQConv {
             return self.eval_product(product, input);
         }
         let (n, ci, h, w) = match (self.batch, input.shape()) {
-            (true, &[n, ci, h, w]) => (n, ci, h, w),
-            (false, &[ci, h, w]) => (1, ci, h, w),
+            (Batch::Kept, &[n, ci, h, w]) | (Batch::Dropped, &[n @ 1, ci, h, w]) => (n, ci, h, w),
+            (Batch::None, &[ci, h, w]) => (1, ci, h, w),
             _ => bail!("PackedQConv: input {:?} for {s:?}", input.shape()),
         };
         ensure!((ci, h, w) == (s.ci, s.h, s.w), "PackedQConv: input {:?} for {s:?}", input.shape());
@@ -150,7 +150,7 @@ impl EvalOp for PackedQConv {
         let plane = oh * ow;
         let path = words_path().ok_or_else(|| format_err!("PackedQConv: no integer dot product on this CPU"))?;
         let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| self.requant(path, o, sums, bytes);
-        let shape: TVec<usize> = if self.batch { tvec![n, s.co, oh, ow] } else { tvec![s.co, oh, ow] };
+        let shape: TVec<usize> = if self.batch == Batch::Kept { tvec![n, s.co, oh, ow] } else { tvec![s.co, oh, ow] };
         let mut t = output_tensor(&shape, |out: &mut [u8]| {
             for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
                 match &self.amx {
@@ -443,7 +443,7 @@ impl TypedOp for PackedQConv {
         if let Some(product) = &self.matmul {
             return Ok(tvec!(self.out_dt.fact(&*product.output)));
         }
-        if !self.batch {
+        if self.batch != Batch::Kept {
             return Ok(tvec!(self.out_dt.fact([self.shape.co, oh, ow])));
         }
         Ok(tvec!(self.out_dt.fact([inputs[0].shape[0].clone(), self.shape.co.into(), oh.into(), ow.into()])))
@@ -453,11 +453,22 @@ impl TypedOp for PackedQConv {
         let s = &self.shape;
         let (oh, ow) = s.out();
         let macs = s.co * oh * ow * s.ci * s.kh * s.kw;
-        let n = if self.batch { inputs[0].shape[0].clone() } else { 1.into() };
+        let n = if self.batch == Batch::Kept { inputs[0].shape[0].clone() } else { 1.into() };
         Ok(tvec!((Cost::FMA(i32::datum_type()), n * macs)))
     }
 
     as_op!();
+}
+
+/// A [`PackedQConv`]'s batch axis.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Batch {
+    /// NCHW in and out.
+    Kept,
+    /// NCHW in with N = 1, CHW out (an einsum that sums the axis of 1 away).
+    Dropped,
+    /// CHW in and out (tract dropped the axis before).
+    None,
 }
 
 /// The integer dot products on words of four bytes [`PackedQConv`] runs on.
@@ -517,10 +528,10 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
         return Ok(None);
     }
     let facts = model.node_input_facts(node.id)?;
-    let conv = conv_shape(node, &facts).map(|s| (s, true)).or_else(|| pointwise_shape(node, &facts));
+    let conv = conv_shape(node, &facts).map(|s| (s, Batch::Kept)).or_else(|| pointwise_shape(node, &facts));
     let (shape, batch, matmul) = match (conv, matmul_shape(node, &facts)) {
         (Some((shape, batch)), _) => (shape, batch, None),
-        (None, Some((shape, product, io))) => (shape, false, Some((product, io))),
+        (None, Some((shape, product, io))) => (shape, Batch::None, Some((product, io))),
         (None, None) => return Ok(None),
     };
     // Both ops take x, the weights, the bias, then x0, x_scale, w0, w_scale, y0, y_scale.
@@ -560,12 +571,20 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
         _ => kernel,
     };
     let q = QuantParams { x0, x_scale: x_scale[0], k_scale, y0, y_scale: y_scale[0] };
+    let bound = sum_bound(kernel, &bias, shape.ci * shape.kh * shape.kw);
     let op = PackedQConv::new(shape, kernel, &bias, q, out_dt)?;
-    if op.exact && !EXACT_SCALES.contains(&op.scale[0]) {
+    if op.exact && !exact_fits(op.scale[0], bound) {
         return Ok(None);
     }
     let matmul = matmul.map(|(product, _)| Arc::new(product));
     Ok(Some(PackedQConv { batch, matmul, ..op }))
+}
+
+/// The largest magnitude a layer's sums `Σ (x − x0)·w[o] + bias[o]` can take (`|x − x0| ≤
+/// 255`), from its weights (`taps` per output channel) and biases.
+fn sum_bound(kernel: &[i8], bias: &[i32], taps: usize) -> i64 {
+    let row = |(w, &b): (&[i8], &i32)| 255 * w.iter().map(|&v| (v as i64).abs()).sum::<i64>() + (b as i64).abs();
+    kernel.chunks(taps.max(1)).zip(bias).map(row).max().unwrap_or(0)
 }
 
 /// The shape of a quantised NCHW `Conv` with OIHW weights, one group, stride 1 or 2 and no
@@ -596,19 +615,26 @@ fn conv_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<ConvShape> {
 /// The shape of the quantised `EinSum` tract makes of a 1x1 convolution, `NIHW,OI,O->NOHW`
 /// (whatever its axis letters), with constant `[O, I]` weights and an i32 bias, as a 1x1
 /// [`ConvShape`]. (NanoTrack's pointwise layers come as `IHW,OI,O->OHW`, without the batch
-/// axis.)
-fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, bool)> {
+/// axis, and the first after its squeeze-excitation as `NIHW,OI,O->OHW`, the axis dropped on
+/// the way out.)
+fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Batch)> {
     let (terms, out) = q_einsum_terms(node)?;
     let [x, w, b, ..] = terms.as_slice() else { return None };
     // NCHW, or CHW (a batch axis of 1 dropped, as in NanoTrack's graphs): `nihw,oi->nohw`.
-    let batch = x.len() == 4;
-    let (c, hw) = if batch { (1, 2) } else { (0, 1) };
-    let pointwise = (x.len() == 4 || x.len() == 3)
-        && w.len() == 2
-        && out.len() == x.len()
-        && (!batch || out[0] == x[0])
-        && out[c] == w[0]
-        && out[hw..] == x[hw..]
+    let batch = match (x.len(), out.len()) {
+        (4, 4) if out[0] == x[0] => Batch::Kept,
+        (4, 3) if !out.contains(&x[0]) => Batch::Dropped,
+        (3, 3) => Batch::None,
+        _ => return None,
+    };
+    let (c, hw, ohw) = match batch {
+        Batch::Kept => (1, 2, 2),
+        Batch::Dropped => (1, 2, 1),
+        Batch::None => (0, 1, 1),
+    };
+    let pointwise = w.len() == 2
+        && out[ohw - 1] == w[0]
+        && out[ohw..] == x[hw..]
         && w[1] == x[c]
         && !out.contains(&x[c])
         && (b.is_empty() || b.as_slice() == [w[0]])
@@ -617,9 +643,8 @@ fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape,
         return None;
     }
     let dims = facts.first()?.shape.as_concrete()?;
-    let (ci, h, w) = match *dims {
-        [_, ci, h, w] if batch => (ci, h, w),
-        [ci, h, w] if !batch => (ci, h, w),
+    let (ci, h, w) = match (batch, dims) {
+        (Batch::Kept, &[_, ci, h, w]) | (Batch::Dropped, &[1, ci, h, w]) | (Batch::None, &[ci, h, w]) => (ci, h, w),
         _ => return None,
     };
     let &[co, wi] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
@@ -778,7 +803,7 @@ impl PackedQConv {
             out_dt,
             amx,
             lanes,
-            batch: true,
+            batch: Batch::Kept,
             matmul: None,
         })
     }
@@ -898,16 +923,30 @@ mod tests {
     /// where the f32 product rounds the other way; the other image is the usual one.
     #[test]
     fn one_scale_rounds_the_exact_product_on_every_path() {
+        // HMG `proj`'s scales, the weights' 32 times smaller: more sums in range, more ties (10).
+        exact_product_on_every_path(0.0069588, 0.0007929764 / 32.0, 0.0028860883);
+    }
+
+    /// The same with a scale above 1 (tract's fixed point then shifts by less than 31; such
+    /// scales come where the output's calibrated range is narrow, as `--method percentile`
+    /// makes NanoTrack's first pointwise layer). There no f32 product of an integer below 2^24
+    /// lands on a half that the exact one misses (the exact one is a multiple of 2^-23 times
+    /// the scale's exponent, which is at least the f32 product's half unit), so the biases span
+    /// the output range instead of rounding apart.
+    #[test]
+    fn one_scale_above_one_rounds_the_exact_product_on_every_path() {
+        exact_product_on_every_path(1.0, 1.37, 1.0);
+    }
+
+    fn exact_product_on_every_path(x_scale: f32, w_scale: f32, y_scale: f32) {
         if !has_words_path() {
             eprintln!("NOTE: no AVX-512 VNNI, AVX2 or aarch64 dot product here (or PRL_ISA caps it): PackedQConv's exact requantisation is NOT tested on this machine");
             return;
         }
-        // HMG `proj`'s scales, the weights' 32 times smaller: more sums in range, more ties (10).
-        let (x_scale, w_scale, y_scale) = (0.0069588f32, 0.0007929764f32 / 32.0, 0.0028860883f32);
         let scale = x_scale * w_scale / y_scale;
-        assert!(EXACT_SCALES.contains(&scale));
+        assert!(exact_fits(scale, 1 << 16), "{scale}");
         let ties = super::super::qconv_kernel::tie_sums(scale);
-        assert!(ties.len() >= 8, "the case needs sums that round apart: {}", ties.len());
+        assert!(scale >= 1.0 || ties.len() >= 8, "the case needs sums that round apart: {}", ties.len());
         for s in [
             // AMX (where the CPU has it) and channels in lanes (VNNI), a partial group of four.
             ConvShape { ci: 6, h: 9, w: 21, co: 40, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 },
@@ -918,15 +957,23 @@ mod tests {
         ] {
             let (mut input, kernel) = data(&s);
             input[s.ci * s.h * s.w..].fill(7);
-            let bias: Vec<i32> = (0..s.co).map(|o| ties[(o * 7) % ties.len()]).collect();
+            let bias: Vec<i32> = match scale >= 1.0 {
+                true => (0..s.co).map(|o| (o as i32 * 13) % 141 - 70).collect(),
+                false => (0..s.co).map(|o| ties[(o * 7) % ties.len()]).collect(),
+            };
             let one = vec![scale; s.co];
             let want = direct(&s, &input, &kernel, &bias, (&one, true));
-            let f32_product = direct(&s, &input, &kernel, &bias, (&one, false));
-            let apart = want.iter().zip(&f32_product).filter(|(a, b)| a != b).count();
-            assert!(
-                apart >= s.out().0 * s.out().1 * s.co,
-                "{s:?}: every output at the zero point rounds apart: {apart}"
-            );
+            let zero_point_image = &want[s.out().0 * s.out().1 * s.co..];
+            if scale >= 1.0 {
+                assert!(zero_point_image.iter().all(|&y| (1..255).contains(&y)), "{s:?}: outputs in range");
+            } else {
+                let f32_product = direct(&s, &input, &kernel, &bias, (&one, false));
+                let apart = want.iter().zip(&f32_product).filter(|(a, b)| a != b).count();
+                assert!(
+                    apart >= s.out().0 * s.out().1 * s.co,
+                    "{s:?}: every output at the zero point rounds apart: {apart}"
+                );
+            }
             let q = QuantParams { x0: 7, x_scale, k_scale: vec![w_scale; s.co], y0: 100, y_scale };
             every_path(&s, &input, &kernel, &bias, q, &want);
         }
@@ -1009,8 +1056,9 @@ mod tests {
         // HMG's form (192 channels, 11x11 tokens) with other letters, and 40 outputs (32-channel tiles).
         run("aicd,bi,b,,,,,,->abcd", &[1, 192, 11, 11], &[192, 192], 1);
         run("NIHW,OI,O,,,,,,->NOHW", &[1, 24, 5, 7], &[40, 24], 1);
-        // NanoTrack's form: the batch axis dropped (CHW).
+        // NanoTrack's forms: the batch axis dropped (CHW), and dropped on the way out.
         run("IHW,OI,O,,,,,,->OHW", &[24, 32, 32], &[88, 24], 1);
+        run("NIHW,OI,O,,,,,,->OHW", &[1, 16, 24, 20], &[16, 16], 1);
         // Not a pointwise convolution (the weights' axes the other way round): left alone.
         run("NIHW,IO,O,,,,,,->NOHW", &[1, 24, 5, 7], &[24, 40], 0);
         run("IHW,IO,O,,,,,,->OHW", &[24, 5, 7], &[24, 40], 0);
@@ -1035,10 +1083,23 @@ mod tests {
             eprintln!("NOTE: no AVX-512 VNNI, AVX2 or aarch64 dot product here (or PRL_ISA caps it): PackedQConv's rounding is NOT compared with tract's here");
             return;
         }
+        // HMG `proj`'s scales, with a sum that rounds apart in f32; and a scale above 1 (the
+        // fixed point shifts by less than 31), which tract's kernels served alone until
+        // 2026-12-05 (NanoTrack's first pointwise layer with `--method percentile`).
         let (x_scale, w_scale, y_scale) = (0.0069588f32, 0.0007929764f32, 0.0028860883f32);
         let scale = x_scale * w_scale / y_scale;
         let exact = 48902 * Scaler::new(scale, RoundingPolicy::Even);
         assert_ne!((48902.0 * scale).round_ties_even() as i32, exact, "the case must tell the two roundings apart");
+        let cases =
+            [((x_scale, w_scale, y_scale), [48902i32, -48902, 48901, 1000]), ((0.5, 2.74, 1.0), [41, -57, 3, 90])];
+        for ((x_scale, w_scale, y_scale), biases) in cases {
+            rounds_as_tract_s_kernels(x_scale, w_scale, y_scale, biases);
+        }
+    }
+
+    fn rounds_as_tract_s_kernels(x_scale: f32, w_scale: f32, y_scale: f32, biases: [i32; 4]) {
+        let scale = x_scale * w_scale / y_scale;
+        let exact = biases[0] * Scaler::new(scale, RoundingPolicy::Even);
         let avx2 = words_path() == Some(WordsPath::Avx2);
         if !avx2 {
             eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 words path (PRL_ISA=avx2 on an AVX2 machine): its rounding is NOT tested here");
@@ -1054,7 +1115,7 @@ mod tests {
             let x = model.add_source("x", u8::fact(x_shape)).unwrap();
             let mut konst = |name: &str, t: Tensor| model.add_const(name, t).unwrap();
             let w = konst("w", Tensor::from_shape(&[4, 4], &[1i8; 16]).unwrap());
-            let b = konst("b", Tensor::from_shape(&[4], &[48902i32, -48902, 48901, 1000]).unwrap());
+            let b = konst("b", Tensor::from_shape(&[4], &biases).unwrap());
             let mut inputs = vec![x, w, b];
             for (i, t) in
                 [tensor0(5i32), tensor0(x_scale), tensor0(0i32), tensor0(w_scale), tensor0(128i32), tensor0(y_scale)]
@@ -1068,14 +1129,14 @@ mod tests {
             model.select_output_outlets(&y).unwrap();
             let input = Tensor::from_shape(x_shape, &[5u8; 12]).unwrap().into_tvalue();
             let reference = model.clone().into_optimized().unwrap();
-            assert_eq!(crate::ops::accelerate(&mut model).unwrap().int8_convolutions, 1, "{expr}");
+            assert_eq!(crate::ops::accelerate(&mut model).unwrap().int8_convolutions, 1, "{expr}, scale {scale}");
             let want = reference.into_runnable().unwrap().run(tvec![input.clone()]).unwrap();
             let got = model.into_runnable().unwrap().run(tvec![input]).unwrap();
             let (got, want) = (got[0].try_as_plain_ram().unwrap(), want[0].try_as_plain_ram().unwrap());
             // SAFETY: both outputs are u8 (possibly quantised).
             let (got, want) = unsafe { (got.as_slice_unchecked::<u8>(), want.as_slice_unchecked::<u8>()) };
-            assert_eq!(got, want, "{expr}");
-            assert_eq!(got[0] as i32, 128 + exact, "{expr}");
+            assert_eq!(got, want, "{expr}, scale {scale}");
+            assert_eq!(got[0] as i32, 128 + exact, "{expr}, scale {scale}");
         }
     }
 

@@ -9,11 +9,16 @@
 use super::qconv::{PX, ROWS};
 use tract_nnef::tract_core::tract_linalg::{mmm::RoundingPolicy, Scaler};
 
-/// The scales [`requant_one`]'s exact rounding is vectorised for: from 2^-15, so that a sum
-/// too large for an f32 (2^24 and up) saturates either way, to below 1, so that tract's
-/// fixed-point product cannot overflow. A layer with one scale outside this range stays with
-/// tract.
-pub(super) const EXACT_SCALES: std::ops::Range<f32> = 1.0 / 32768.0..1.0;
+/// Whether [`requant_one`]'s exact rounding is vectorised for one `scale` on sums at most
+/// `bound` in magnitude (`255·Σ|w| + |bias|` over a layer's output channels): from 2^-15, so
+/// that a sum too large for an f32 (2^24 and up) saturates either way, while `bound · scale`
+/// stays below 2^31, so that tract's fixed-point product (an i64 cut to i32) does not wrap. A
+/// layer with one scale outside this stays with tract. (Scales of 1 and more come where an
+/// output's calibrated range is narrow against its input's and weights', e.g. clipped by
+/// `--method percentile`.)
+pub(super) fn exact_fits(scale: f32, bound: i64) -> bool {
+    scale >= 1.0 / 32768.0 && (scale as f64) * (bound as f64) < 2f64.powi(31)
+}
 
 /// One requantised output: `sat_u8(round_half_even(sum · scale) + y0)`, with the product as
 /// tract takes it. `exact` (one scale for every output channel): the exact product, as tract's
