@@ -36,6 +36,7 @@ mod quantization;
 mod quiet;
 mod recording;
 mod resize;
+mod threads;
 mod tracker;
 
 pub use archive::{check_graph_archive, parse_work};
@@ -57,9 +58,10 @@ pub use ops::{
     LayerNormCore, PackedConv, PackedQConv, Permute, PointwiseConv, QuantizeU8, RowSoftmax, SqueezeExcite,
     WinogradConv,
 };
-pub use plan::{set_threads, spread, NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures, Threads};
+pub use plan::{NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
 pub use quiet::catch_quietly;
 pub use recording::{record, replay, TensorMatch, RECORDING_INDEX};
 pub use resize::{resize_linear_u8, resize_linear_u8_rows};
+pub use threads::{set_threads, spread, Threads};
 pub use tracker::{confidence, BBox, Prediction, StepTimings, TargetState, Tracker};

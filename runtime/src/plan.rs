@@ -33,23 +33,14 @@ impl Runnable {
         Runnable { serial: largest < SPLIT_MACS, plan }
     }
 
-    /// `f` with tract's executor for this graph: the calling thread alone when `serial`; else,
-    /// where the executor is a pool the calling thread is not part of, on one of the pool's
-    /// threads while the pool's other threads spin ([`spin_while`], unless [`spin`] says not),
-    /// so that every operator split over the pool starts on all its threads at once.
+    /// `f` with tract's executor for this graph: the calling thread alone when `serial`; else
+    /// split over the pool's threads ([`crate::threads::split_run`]).
     fn scope<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
-        use tract_linalg::multithread::{current_tract_executor, multithread_tract_scope, Executor};
+        use tract_linalg::multithread::{multithread_tract_scope, Executor};
         if self.serial {
             return multithread_tract_scope(Executor::SingleThread, f);
         }
-        match current_tract_executor() {
-            Executor::MultiThread(pool) if pool.current_thread_index().is_none() => {
-                let executor = Executor::MultiThread(pool.clone());
-                let run = move || multithread_tract_scope(executor, f);
-                pool.install(move || if spin() { spin_while(run) } else { run() })
-            }
-            _ => f(),
-        }
+        crate::threads::split_run(f)
     }
 
     fn run(&self, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
@@ -59,73 +50,6 @@ impl Runnable {
     fn model(&self) -> &TypedModel {
         self.plan.model()
     }
-}
-
-/// Whether a split graph's run keeps the pool's other threads spinning ([`spin_while`]): yes,
-/// unless the environment sets `PRL_SPIN=off` (or `0`), which saves their cores' power at
-/// some speed (on the camera, say, where the step has time to spare).
-fn spin() -> bool {
-    static SPIN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *SPIN.get_or_init(|| !matches!(std::env::var("PRL_SPIN").as_deref(), Ok("off" | "0")))
-}
-
-/// `f` on the calling thread, one of a rayon pool's, while the pool's other threads look for
-/// work without sleeping until `f` returns (as ONNX Runtime's threads spin between operators).
-///
-/// A pool thread that found nothing to do goes to sleep within microseconds, and waking it
-/// took 20-40 µs on a 2-vCPU VM (an idle virtual CPU is halted by the host), then as long
-/// again for the first thread to learn that the second's share was done: a split of two
-/// 100 µs halves took 165-180 µs, against 101 µs with the other thread spinning (measured
-/// with rayon alone). PRL-Track's search graph splits about a hundred operators a frame, many
-/// of them 0.1-1 ms long. The cost: the pool's other threads keep their cores busy for as long
-/// as `f` runs (one graph run), not between runs.
-///
-/// The spinning is a short job ([`spin_once`]) that looks for work once and queues itself
-/// again, never a loop until `f` ends: a pool thread waiting on a split runs whatever job it
-/// finds, and a job that looped until the run's end there would hold up the split the run
-/// waits on (it deadlocked so).
-fn spin_while<R>(f: impl FnOnce() -> R) -> R {
-    spin_until_set(Arc::default(), f)
-}
-
-/// [`spin_while`], the run's end marked by setting `done` (each queued turn holds a clone: the
-/// tests watch them go).
-fn spin_until_set<R>(done: Arc<std::sync::atomic::AtomicBool>, f: impl FnOnce() -> R) -> R {
-    use std::sync::atomic::{AtomicBool, Ordering};
-    /// Ends the spinning however `f` ends.
-    struct Done(Arc<AtomicBool>);
-    impl Drop for Done {
-        fn drop(&mut self) {
-            self.0.store(true, Ordering::Release);
-        }
-    }
-    let done = Done(done);
-    if let Some(me) = rayon::current_thread_index() {
-        let flag = done.0.clone();
-        rayon::spawn_broadcast(move |ctx| {
-            if ctx.index() != me {
-                spin_once(flag.clone(), me);
-            }
-        });
-    }
-    f()
-}
-
-/// One turn of [`spin_while`]'s spinning on a pool thread other than the run's (`me`): unless
-/// the run is `done`, run one job found elsewhere (or yield the core to any other thread that
-/// wants it), then queue the next turn on this thread's own deque. Where the run's thread
-/// takes the turn (stealing it while it waits on a split) it only queues it again, for the
-/// others to take back.
-fn spin_once(done: Arc<std::sync::atomic::AtomicBool>, me: usize) {
-    if done.load(std::sync::atomic::Ordering::Acquire) {
-        return;
-    }
-    if rayon::current_thread_index() != Some(me) && rayon::yield_now() != Some(rayon::Yield::Executed) {
-        // Nothing to steal: let any other thread that wants this core run (`prl track`'s frame
-        // decoding, say); with none, the call returns at once.
-        std::thread::yield_now();
-    }
-    rayon::spawn(move || spin_once(done, me));
 }
 
 /// A loaded, optimised plan. Cloning it is cheap (the optimised graphs are shared), so that
@@ -165,52 +89,6 @@ fn to_vec(v: &TValue, graph: &'static str) -> Result<Vec<f32>> {
 pub struct SearchOutput {
     /// One flattened tensor per output.
     pub outputs: Vec<Vec<f32>>,
-}
-
-/// Use `n` threads for tract's matrix products (1: single-threaded). Applies process-wide.
-pub fn set_threads(n: usize) {
-    use tract_linalg::multithread::{set_default_executor, Executor};
-    set_default_executor(if n > 1 { Executor::multithread(n) } else { Executor::SingleThread });
-}
-
-/// A pool of threads for tract's matrix products that some calls run on ([`Threads::run`])
-/// while the rest of the process keeps the setting of [`set_threads`]: to time one target's
-/// step on every core against several targets' steps spread one thread each, in one run.
-#[derive(Clone)]
-pub struct Threads(tract_linalg::multithread::Executor);
-
-impl Threads {
-    /// `n` threads (1: on the calling thread).
-    pub fn new(n: usize) -> Threads {
-        use tract_linalg::multithread::Executor;
-        Threads(if n > 1 { Executor::multithread(n) } else { Executor::SingleThread })
-    }
-
-    /// Run `f` with tract's products on these threads (on the calling thread's calls only).
-    pub fn run<R>(&self, f: impl FnOnce() -> R) -> R {
-        tract_linalg::multithread::multithread_tract_scope(self.0.clone(), f)
-    }
-}
-
-/// `f(i, item)` for every item of `items` on up to `threads` threads side by side (contiguous
-/// shares; results in item order); on the calling thread for one thread or one item. For work
-/// that is independent per item: several targets' steps, the long-term mode's region crops.
-pub fn spread<T: Send, R: Send>(items: &mut [T], threads: usize, f: impl Fn(usize, &mut T) -> R + Sync) -> Vec<R> {
-    if threads <= 1 || items.len() <= 1 {
-        return items.iter_mut().enumerate().map(|(i, t)| f(i, t)).collect();
-    }
-    let share = items.len().div_ceil(threads);
-    let f = &f;
-    std::thread::scope(|s| {
-        let handles: Vec<_> = items
-            .chunks_mut(share)
-            .enumerate()
-            .map(|(c, chunk)| {
-                s.spawn(move || chunk.iter_mut().enumerate().map(|(j, t)| f(c * share + j, t)).collect::<Vec<R>>())
-            })
-            .collect();
-        handles.into_iter().flat_map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p))).collect()
-    })
 }
 
 impl Plan {
@@ -524,90 +402,4 @@ fn load_graph(dir: &Path, info: &crate::GraphInfo, knobs: &KnobScope, winograd: 
     crate::catch_quietly(optimise)
         .ok_or_else(|| bad("tract cannot optimise it: the graph is malformed".into()))?
         .map_err(tract_err)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::spin_while;
-
-    /// The turns still queued for a run's spinning (each holds a clone of its flag) are gone
-    /// within a second.
-    fn turns_end(flag: &std::sync::Arc<std::sync::atomic::AtomicBool>) -> bool {
-        let t = std::time::Instant::now();
-        while std::sync::Arc::strong_count(flag) > 1 && t.elapsed().as_secs() < 1 {
-            std::thread::sleep(std::time::Duration::from_millis(1));
-        }
-        std::sync::Arc::strong_count(flag) == 1
-    }
-
-    /// `spin_while` returns what `f` returns, with the pool's other thread taking a share of
-    /// `f`'s splits while it spins, and the spinning stops when `f` returns or panics (no turn
-    /// queues another).
-    #[test]
-    fn spinning_ends_with_the_run() {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
-        let threads = std::sync::Mutex::new(std::collections::BTreeSet::new());
-        let flag: std::sync::Arc<std::sync::atomic::AtomicBool> = std::sync::Arc::default();
-        let sum = pool.install(|| {
-            super::spin_until_set(flag.clone(), || {
-                use rayon::prelude::*;
-                (0..64u64)
-                    .into_par_iter()
-                    .map(|i| {
-                        threads.lock().unwrap().insert(rayon::current_thread_index());
-                        std::thread::sleep(std::time::Duration::from_millis(1));
-                        i
-                    })
-                    .sum::<u64>()
-            })
-        });
-        assert_eq!(sum, 63 * 64 / 2);
-        assert_eq!(threads.lock().unwrap().len(), 2, "both threads took a share");
-        assert!(turns_end(&flag), "the spinning went on after the run");
-        let flag: std::sync::Arc<std::sync::atomic::AtomicBool> = std::sync::Arc::default();
-        let panicked = pool
-            .install(|| std::panic::catch_unwind(|| super::spin_until_set(flag.clone(), || panic!("a failing run"))));
-        assert!(panicked.is_err());
-        assert!(turns_end(&flag), "the spinning went on after the panic");
-        assert_eq!(pool.broadcast(|c| c.index()), vec![0, 1]);
-    }
-
-    /// Runs one after another, each of nested splits of uneven work (the shape of a graph's
-    /// operators: a pool thread that waits on a split runs whatever job it finds, the spinning
-    /// of the next run included), finish: the spinning never holds up a split it is nested in.
-    /// (A spinner that looped until its run ended deadlocked here, as it had in `prl bench`.)
-    #[test]
-    fn nested_splits_finish_while_the_threads_spin() {
-        let (tx, rx) = std::sync::mpsc::channel();
-        std::thread::spawn(move || {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
-            let mut total = 0u64;
-            for run in 0..300u64 {
-                total += pool.install(|| {
-                    spin_while(|| {
-                        use rayon::prelude::*;
-                        (0..8u64)
-                            .into_par_iter()
-                            .map(|i| {
-                                (0..4u64)
-                                    .into_par_iter()
-                                    .map(|j| {
-                                        let t = std::time::Instant::now();
-                                        let us = (run + i * 7 + j * 3) % 40;
-                                        while t.elapsed() < std::time::Duration::from_micros(us) {
-                                            std::hint::spin_loop();
-                                        }
-                                        1
-                                    })
-                                    .sum::<u64>()
-                            })
-                            .sum::<u64>()
-                    })
-                });
-            }
-            tx.send(total).unwrap();
-        });
-        let total = rx.recv_timeout(std::time::Duration::from_secs(60)).expect("the runs deadlocked");
-        assert_eq!(total, 300 * 32);
-    }
 }
