@@ -492,6 +492,13 @@ fn int8_plan_runs_integer_kernels_near_fp32_on_held_out_footage() {
     let kernels = common::int8_kernel_nodes(&plan);
     assert!(kernels.len() >= 10, "{kernels:?}");
     assert!(kernels.iter().any(|k| k.starts_with("head_")), "the head's pointwise convs: {kernels:?}");
+    // The depthwise layers after integer ones read their bytes (the dequantisation in them).
+    let reading = plan.search_nodes().into_iter().filter(|n| n.op == "DepthwiseConv" && n.info.contains("u8 input"));
+    assert!(
+        reading.count() >= 6,
+        "{:?}",
+        plan.search_nodes().iter().filter(|n| n.op == "DepthwiseConv").collect::<Vec<_>>()
+    );
     assert!(common::int8_kernel_nodes(&Plan::load(&fp32).unwrap()).is_empty());
     // Held-out fidelity and tracking, through prl compare.
     let json = tmp.path().join("compare.json");

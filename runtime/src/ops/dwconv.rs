@@ -6,7 +6,9 @@
 //! layers (16-72 channels of 64x64 to 128x128) and took half of its search step. Here each
 //! channel's plane is zero-padded once (as its phases with stride 2, so every tap reads
 //! consecutive inputs) and every output row is the sum over taps of a weight times a shifted
-//! input row; channels are spread over tract's thread pool.
+//! input row; channels are spread over tract's thread pool. In int8 plans a convolution whose
+//! input is dequantised for it alone reads the u8 data and dequantises each plane on its way
+//! into the padded plane ([`DepthwiseConv::reading`]).
 
 use std::sync::Arc;
 
@@ -15,6 +17,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv::{ConstConv, ConvShape};
+use super::quant::DequantizeU8;
 use super::{output_tensor_written, par_chunks, same_bits};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
@@ -42,6 +45,8 @@ pub struct DepthwiseConv {
     borders: Arc<Vec<(usize, usize)>>,
     /// The output's shape where the fused nodes end in another shape than the convolution's.
     reshape: Option<TVec<usize>>,
+    /// The input is u8, dequantised by this (and its activation) plane by plane ([`Self::reading`]).
+    dequant: Option<DequantizeU8>,
 }
 
 impl std::fmt::Debug for DepthwiseConv {
@@ -58,6 +63,7 @@ impl PartialEq for DepthwiseConv {
             && same_bits(&self.bias, &other.bias)
             && self.act == other.act
             && self.reshape == other.reshape
+            && self.dequant == other.dequant
     }
 }
 
@@ -77,7 +83,8 @@ impl DepthwiseConv {
         let borders = Arc::new(super::unwritten_runs(Self::scratch_len(&shape), |buf| {
             shape.pad_plane(&vec![0.0; shape.h * shape.w], buf)
         }));
-        Ok(DepthwiseConv { shape, batch, offsets, weights, bias, act: Activation::NONE, borders, reshape: None })
+        let act = Activation::NONE;
+        Ok(DepthwiseConv { shape, batch, offsets, weights, bias, act, borders, reshape: None, dequant: None })
     }
 
     /// The length of the scratch plane: the padded input (its phases with stride 2), with room
@@ -91,6 +98,16 @@ impl DepthwiseConv {
     pub(crate) fn fused(self, tail: &Tail) -> TractResult<DepthwiseConv> {
         ensure!(tail.bias.is_none(), "DepthwiseConv: a convolution has its own bias");
         Ok(DepthwiseConv { act: tail.act, reshape: tail.reshaped(), ..self })
+    }
+
+    /// The convolution of `dequant`'s output, reading its u8 input instead: each plane is
+    /// dequantised (with the dequantiser's activation) into a plane of the thread's before it is
+    /// padded, the values the dequantiser would have written, so the same outputs. NanoTrack's
+    /// int8 plan has 13 such pairs (its expanding pointwise layers and the head's towers are
+    /// integer, the depthwise layers after them f32): the dequantised tensors no longer go
+    /// through memory.
+    pub(crate) fn reading(self, dequant: DequantizeU8) -> DepthwiseConv {
+        DepthwiseConv { dequant: Some(dequant), ..self }
     }
 
     /// A zeroed scratch plane for [`Self::channel`] ([`Self::scratch_len`] long; the operator
@@ -309,13 +326,14 @@ impl Op for DepthwiseConv {
     fn info(&self) -> TractResult<Vec<String>> {
         let s = &self.shape;
         Ok(vec![format!(
-            "{}x{} kernel, stride {}, {} channels, pad {:?}, activation {}",
+            "{}x{} kernel, stride {}, {} channels, pad {:?}, activation {}{}",
             s.kh,
             s.kw,
             s.stride,
             s.ci,
             s.pad,
-            self.act.describe()
+            self.act.describe(),
+            if self.dequant.is_some() { ", u8 input dequantised" } else { "" }
         )])
     }
 
@@ -335,7 +353,16 @@ impl EvalOp for DepthwiseConv {
         };
         ensure!((c, h, w) == (s.ci, s.h, s.w), "DepthwiseConv: input {:?} for {s:?}", input.shape());
         let input = input.try_as_plain_ram()?;
-        let input = input.as_slice::<f32>()?;
+        // The data: f32, or u8 dequantised plane by plane ([`Self::reading`]).
+        let data = match &self.dequant {
+            None => Data::F32(input.as_slice::<f32>()?),
+            Some(dq) => {
+                let dt = input.datum_type();
+                ensure!(dt.unquantized() == u8::datum_type(), "DepthwiseConv: input is {dt:?}, not u8");
+                // SAFETY: the storage is u8, possibly with quantisation parameters (checked).
+                Data::U8(unsafe { input.as_slice_unchecked::<u8>() }, dq)
+            }
+        };
         let (oh, ow) = s.out();
         let shape: TVec<usize> = if self.batch { tvec![n, c, oh, ow] } else { tvec![c, oh, ow] };
         let plane = oh * ow;
@@ -345,10 +372,21 @@ impl EvalOp for DepthwiseConv {
         let macs = plane * s.kh * s.kw;
         let group = (SERIAL_MACS / 8 / macs.max(1)).clamp(1, n * c);
         let run = |g: usize, dst: &mut [f32]| {
+            let mut dequantised = match data {
+                Data::F32(_) => vec![],
+                Data::U8(..) => vec![0.0; h * w],
+            };
             super::with_padded(Self::scratch_len(s), &self.borders, |scratch| {
                 for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
                     let p = g * group + k;
-                    self.channel(p % c, &input[p * h * w..(p + 1) * h * w], d, scratch);
+                    let src = match data {
+                        Data::F32(x) => &x[p * h * w..(p + 1) * h * w],
+                        Data::U8(x, dq) => {
+                            dq.apply(&x[p * h * w..(p + 1) * h * w], &mut dequantised);
+                            &dequantised[..]
+                        }
+                    };
+                    self.channel(p % c, src, d, scratch);
                 }
             })
         };
@@ -364,6 +402,14 @@ impl EvalOp for DepthwiseConv {
         let out = unsafe { output_tensor_written(&shape, fill)? };
         Ok(tvec!(reshape_output(out, self.reshape.as_ref())?.into_tvalue()))
     }
+}
+
+/// A [`DepthwiseConv`]'s input data.
+#[derive(Clone, Copy)]
+enum Data<'a> {
+    F32(&'a [f32]),
+    /// u8, and the dequantiser it goes through.
+    U8(&'a [u8], &'a DequantizeU8),
 }
 
 impl TypedOp for DepthwiseConv {
@@ -419,6 +465,21 @@ pub(crate) fn depthwise(model: &TypedModel, node: &TypedNode) -> TractResult<Opt
         _ => return Ok(None),
     };
     Ok(Some(DepthwiseConv::new(shape, batch, c.weight, c.bias)?))
+}
+
+/// `op` (standing for `node`) reading the u8 input of the [`DequantizeU8`] that makes its
+/// input, where that is the dequantiser's only reader ([`DepthwiseConv::reading`]; the
+/// dequantiser, left without readers, goes when the graph is compacted), with the input it
+/// reads; else `op` and its own input.
+pub(crate) fn past_dequantize(model: &TypedModel, node: &TypedNode, op: DepthwiseConv) -> (DepthwiseConv, OutletId) {
+    let x = node.inputs[0];
+    let producer = model.node(x.node);
+    match producer.op_as::<DequantizeU8>() {
+        Some(dq) if model.outlet_successors(x).len() == 1 && !model.output_outlets().is_ok_and(|o| o.contains(&x)) => {
+            (op.reading(dq.clone()), producer.inputs[0])
+        }
+        _ => (op, x),
+    }
 }
 
 #[cfg(test)]
@@ -507,6 +568,39 @@ mod tests {
                 let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
                 assert!(worst < 1e-4, "op {s:?} image {n}: off by {worst}");
             }
+        }
+    }
+
+    /// Reading u8 data through a dequantiser (and its activation) gives, bit for bit, the
+    /// convolution of what the dequantiser writes: stride 1 and 2, one layer on the calling
+    /// thread and one in channel groups.
+    #[test]
+    fn reading_u8_equals_the_convolution_of_the_dequantised_input() {
+        let relu6 = Activation { lo: 0.0, hi: 6.0, hard_swish: false };
+        let hard_swish = Activation { hard_swish: true, ..Activation::NONE };
+        for (s, act) in [
+            (ConvShape { ci: 3, h: 9, w: 7, co: 3, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, relu6),
+            (ConvShape { ci: 5, h: 33, w: 65, co: 5, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 }, hard_swish),
+            (ConvShape { ci: 16, h: 64, w: 64, co: 16, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 }, hard_swish),
+        ] {
+            let n_in = s.ci * s.h * s.w;
+            let bytes: Vec<u8> = (0..n_in).map(|i| (i * 7919 % 251) as u8).collect();
+            let weight: Vec<f32> = (0..s.ci * s.kh * s.kw).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+            let bias: Vec<f32> = (0..s.ci).map(|o| o as f32 / 4.0).collect();
+            let dq = DequantizeU8::new(0.0473, 117).with_act(act);
+            let mut dequantised = vec![0f32; n_in];
+            dq.apply(&bytes, &mut dequantised);
+            assert!(dequantised.iter().any(|&v| v > 0.0) && dequantised.iter().any(|&v| v <= 0.0));
+            let op = DepthwiseConv::new(s.clone(), true, &weight, &bias).unwrap();
+            let reading = op.clone().reading(dq);
+            let run = |op: &DepthwiseConv, x: Tensor| {
+                let out = op.eval(&EvalContext::out_of_plan(), tvec![x.into_tvalue()]).unwrap();
+                out[0].try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().to_vec()
+            };
+            let dims = (1, s.ci, s.h, s.w);
+            let want = run(&op, tract_ndarray::Array4::from_shape_vec(dims, dequantised).unwrap().into_tensor());
+            let got = run(&reading, tract_ndarray::Array4::from_shape_vec(dims, bytes).unwrap().into_tensor());
+            assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "{s:?}");
         }
     }
 }

@@ -137,7 +137,8 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
                 with_tail(model, node, op, PackedConv::fused, &mut chain)?
             } else if let Some(op) = dwconv::depthwise(model, node)? {
                 done.depthwise += 1;
-                with_tail(model, node, op, DepthwiseConv::fused, &mut chain)?
+                let (op, x) = dwconv::past_dequantize(model, node, op);
+                (with_tail(model, node, op, DepthwiseConv::fused, &mut chain)?.0, tvec![x])
             } else if let Some(op) = dwconv_hwc::depthwise_hwc(model, node)? {
                 done.depthwise += 1;
                 (Box::new(op), tvec![node.inputs[0]])

@@ -187,6 +187,19 @@ impl DequantizeU8 {
         DequantizeU8 { scale, zero_point, act: Activation::NONE }
     }
 
+    /// `ys = act((xs - zero_point) * scale)`, what the operator writes for `xs` (element by
+    /// element: the same bits for any split of the data).
+    pub(crate) fn apply(&self, xs: &[u8], ys: &mut [f32]) {
+        dequantize::dequantize(xs, ys, self.scale, self.zero_point);
+        self.act.apply_all(ys);
+    }
+
+    /// This dequantiser with `act` after it.
+    #[cfg(test)]
+    pub(crate) fn with_act(self, act: Activation) -> DequantizeU8 {
+        DequantizeU8 { act, ..self }
+    }
+
     /// This dequantiser with the activation of `tail` after it, where the tail ends in the
     /// same `shape` and adds no bias.
     pub(crate) fn fused(&self, tail: &Tail, shape: &[usize]) -> Option<DequantizeU8> {
@@ -252,14 +265,10 @@ impl EvalOp for DequantizeU8 {
         // SAFETY: u8, possibly with quantisation parameters (checked when the op was made).
         let xs = unsafe { xs.as_slice_unchecked::<u8>() };
         let share = SHARE;
-        let (scale, zp, act) = (self.scale, self.zero_point, self.act);
         // SAFETY: the chunks cover the whole output, and each is written whole.
         let out = unsafe {
             output_tensor_written(&shape, |ys| {
-                par_chunks(ys, share, |i, ys| {
-                    dequantize::dequantize(&xs[i * share..][..ys.len()], ys, scale, zp);
-                    act.apply_all(ys);
-                });
+                par_chunks(ys, share, |i, ys| self.apply(&xs[i * share..][..ys.len()], ys));
                 Ok(())
             })?
         };
