@@ -4,7 +4,7 @@
 //! region crops).
 
 use std::cell::RefCell;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Weak};
 
 use rayon::ThreadPool;
 use tract_linalg::multithread::{multithread_tract_scope, Executor};
@@ -49,7 +49,9 @@ fn executor(n: usize) -> Executor {
             if let Ok(pool) = built {
                 let pool = Arc::new(pool);
                 *member = Some(pool.clone());
-                OTHERS.lock().unwrap_or_else(|e| e.into_inner()).push((Arc::as_ptr(&pool) as usize, None));
+                let mut others = OTHERS.lock().unwrap_or_else(|e| e.into_inner());
+                others.retain(|(maker, _)| maker.strong_count() > 0);
+                others.push((Arc::downgrade(&pool), None));
                 return Executor::MultiThread(pool);
             }
         }
@@ -57,17 +59,20 @@ fn executor(n: usize) -> Executor {
     })
 }
 
-/// Pools made by [`executor`] with their maker among their threads, by address, each with the
-/// separate pool of as many threads that other threads' runs use instead (made when first
-/// needed: `prl run-benchmark`'s job threads, say).
-static OTHERS: Mutex<Vec<(usize, Option<Arc<ThreadPool>>)>> = Mutex::new(Vec::new());
+/// Pools made by [`executor`] with their maker among their threads (those still in use), each
+/// with the separate pool of as many threads that other threads' runs use instead (made when
+/// first needed: `prl run-benchmark`'s job threads, say).
+static OTHERS: Mutex<Vec<Maker>> = Mutex::new(Vec::new());
+
+/// A pool made with its maker among its threads, and the separate pool for other threads.
+type Maker = (Weak<ThreadPool>, Option<Arc<ThreadPool>>);
 
 /// The pool to run a graph on from a thread that is not among `pool`'s: `pool` itself, unless
 /// its maker is one of its threads ([`OTHERS`]).
 fn for_others(pool: Arc<ThreadPool>) -> Arc<ThreadPool> {
-    let key = Arc::as_ptr(&pool) as usize;
     let mut others = OTHERS.lock().unwrap_or_else(|e| e.into_inner());
-    let Some((_, separate)) = others.iter_mut().find(|(k, _)| *k == key) else { return pool };
+    let made_by_member = |maker: &Weak<ThreadPool>| maker.upgrade().is_some_and(|p| Arc::ptr_eq(&p, &pool));
+    let Some((_, separate)) = others.iter_mut().find(|(maker, _)| made_by_member(maker)) else { return pool };
     match separate {
         Some(p) => p.clone(),
         None => match Executor::multithread(pool.current_num_threads()) {
