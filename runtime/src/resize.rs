@@ -10,6 +10,18 @@ struct Taps {
     w: Vec<[i32; 2]>,
 }
 
+impl Taps {
+    /// Per value of an interleaved row of `channels` channels (column, channel): its two source
+    /// offsets within the source row and their weights.
+    fn per_value(&self, channels: usize) -> (Vec<[usize; 2]>, Vec<[i32; 2]>) {
+        let value = move |(i, w): (&[usize; 2], &[i32; 2])| {
+            let (i, w) = (*i, *w);
+            (0..channels).map(move |c| ([i[0] * channels + c, i[1] * channels + c], w))
+        };
+        self.idx.iter().zip(&self.w).flat_map(value).unzip()
+    }
+}
+
 fn round_half_even(v: f32) -> i32 {
     v.round_ties_even() as i32
 }
@@ -65,13 +77,7 @@ pub fn resize_linear_u8_rows(
     let tx = taps(sw, dw, true);
     let ty = taps(sh, dh, false);
     let row_len = dw * channels;
-    // Per output value of a row (column, channel): its two source offsets and weights.
-    let (offs, ws): (Vec<[usize; 2]>, Vec<[i32; 2]>) = tx
-        .idx
-        .iter()
-        .zip(&tx.w)
-        .flat_map(|(i, w)| (0..channels).map(move |c| ([i[0] * channels + c, i[1] * channels + c], *w)))
-        .unzip();
+    let (offs, ws) = tx.per_value(channels);
     let mut src_row = vec![0u8; sw * channels];
     // Horizontal pass for one source row, cached since consecutive output rows share rows.
     let mut hrow = |y: usize, out: &mut [i32]| {
@@ -247,9 +253,7 @@ mod tests {
     #[test]
     fn every_form_of_the_passes_equals_the_portable_one() {
         let row: Vec<u8> = (0..3 * 611).map(|i| ((i * 7919 + i / 13) % 256) as u8).collect();
-        let tx = taps(611, 255, true);
-        let (offs, ws): (Vec<[usize; 2]>, Vec<[i32; 2]>) =
-            tx.idx.iter().zip(&tx.w).flat_map(|(i, w)| (0..3).map(move |c| ([i[0] * 3 + c, i[1] * 3 + c], *w))).unzip();
+        let (offs, ws) = taps(611, 255, true).per_value(3);
         let mut want_h = vec![0i32; offs.len()];
         passes::horizontal_generic(&row, &offs, &ws, &mut want_h);
         let r1: Vec<i32> = want_h.iter().rev().copied().collect();
@@ -262,28 +266,25 @@ mod tests {
         forms.push(("dispatched", h, v));
         #[cfg(target_arch = "x86_64")]
         {
+            type Horizontal = unsafe fn(&[u8], &[[usize; 2]], &[[i32; 2]], &mut [i32]);
+            type Vertical = unsafe fn(&[i32], &[i32], [i32; 2], &mut [u8]);
             let isa = crate::isa::isa();
-            if isa.avx2_fma {
-                let (mut h, mut v) = (vec![0i32; want_h.len()], vec![0u8; want_v.len()]);
-                // SAFETY: the CPU has AVX2 and FMA (checked).
-                unsafe {
-                    passes::horizontal_avx2(&row, &offs, &ws, &mut h);
-                    passes::vertical_avx2(&want_h, &r1, [1500, 548], &mut v);
+            let compiled: [(&str, bool, Horizontal, Vertical); 2] = [
+                ("AVX2", isa.avx2_fma, passes::horizontal_avx2, passes::vertical_avx2),
+                ("AVX-512", isa.avx512, passes::horizontal_avx512, passes::vertical_avx512),
+            ];
+            for (name, runs, horizontal, vertical) in compiled {
+                if !runs {
+                    eprintln!("NOTE: no {name} here (or PRL_ISA caps it): the resize's {name} form is NOT tested");
+                    continue;
                 }
-                forms.push(("avx2", h, v));
-            } else {
-                eprintln!("NOTE: no AVX2 here (or PRL_ISA caps it): the resize's AVX2 form is NOT tested");
-            }
-            if isa.avx512 {
                 let (mut h, mut v) = (vec![0i32; want_h.len()], vec![0u8; want_v.len()]);
-                // SAFETY: the CPU has AVX-512F, AVX2 and FMA (checked).
+                // SAFETY: the CPU has the form's instruction sets (checked just above).
                 unsafe {
-                    passes::horizontal_avx512(&row, &offs, &ws, &mut h);
-                    passes::vertical_avx512(&want_h, &r1, [1500, 548], &mut v);
+                    horizontal(&row, &offs, &ws, &mut h);
+                    vertical(&want_h, &r1, [1500, 548], &mut v);
                 }
-                forms.push(("avx512", h, v));
-            } else {
-                eprintln!("NOTE: no AVX-512 here (or PRL_ISA caps it): the resize's AVX-512 form is NOT tested");
+                forms.push((name, h, v));
             }
         }
         assert!(want_v.iter().any(|&b| b > 0 && b < 255));
