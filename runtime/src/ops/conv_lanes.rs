@@ -150,11 +150,13 @@ impl LanePack {
     ///   least 5% fewer values than [`super::conv_kernel`]'s tiles of 4 channels (half a block)
     ///   by [`tile_positions`] wide positions.
     ///
-    /// Compact tiles only for 16 input channels or more: on an AMD EPYC (Zen 2) both tiles run
-    /// alike per value, except on a layer of few input channels (PRL-Track's first, 3 channels,
-    /// 11x11, stride 2: 5-10% slower in compact tiles). Small maps, where a wide row's dropped
-    /// columns are a large share (PRL-Track's template layers 2-5: 13-25%), take the compact
-    /// tiles.
+    /// On AVX2, compact tiles only for 16 input channels or more: on an AMD EPYC (Zen 2) both
+    /// tiles run alike per value, except on a layer of few input channels (PRL-Track's first, 3
+    /// channels, 11x11, stride 2: 5-10% slower in compact tiles). On AVX-512 they run alike on
+    /// that layer too (Intel Xeon, 2026-12-06: its template form, 7.6% fewer values in compact
+    /// tiles, made the template graph 1.5% faster on one and on two threads). Small maps, where
+    /// a wide row's dropped columns are a large share (PRL-Track's template layers 1-5:
+    /// 8-25%), take the compact tiles.
     pub(crate) fn tile_for(shape: &ConvShape) -> Option<(usize, bool)> {
         use crate::isa::F32Kernel;
         let ((oh, ow), wp, co) = (shape.out(), shape.phase().1, shape.co);
@@ -169,7 +171,7 @@ impl LanePack {
         let wide = ((oh - 1) * wp + ow).div_ceil(wide_px) * wide_px * co.div_ceil(wide_channels) * wide_channels;
         let px = compact_tile_positions(v);
         let compact = (oh * ow).div_ceil(px) * px * co.div_ceil(L * v) * L * v;
-        let compact = co >= L && shape.ci >= L && compact * 20 < wide * 19;
+        let compact = co >= L && (shape.ci >= L || v > 1) && compact * 20 < wide * 19;
         (compact || v > 1).then_some((v, compact))
     }
 
