@@ -32,12 +32,8 @@ command -v ffmpeg >/dev/null || { apt-get update -qq && apt-get install -y -qq f
 # execution loads a plan of a few kilobytes. PRL_BIN=path/to/prl uses that binary instead of
 # building one.
 if [ ! -f "$work/seeds.done" ] || [ ! -d "$work/seeds/tiny/plan" ]; then
-    if [ -n "${PRL_BIN:-}" ]; then
-        prl=$PRL_BIN
-    else
-        cargo build -q --bin prl
-        prl=target/debug/prl
-    fi
+    source scripts/prl-bin.sh
+    use_prl dev
     rm -rf "$work/seeds"
     python3 fuzz/seeds.py "$shared" "$work/seeds" "$prl"
     touch "$work/seeds.done"

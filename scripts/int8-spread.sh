@@ -33,12 +33,8 @@ calib=${PRL_CALIB:-$data/building4}
 eval_seqs=${PRL_EVAL:-"$data/wakeboard7 $data/wakeboard10"}
 work=target/int8-spread
 mkdir -p "$work"
-if [ -n "${PRL_BIN:-}" ]; then
-    prl=$PRL_BIN
-else
-    cargo build -q --release --bin prl
-    prl=target/release/prl
-fi
+source scripts/prl-bin.sh
+use_prl release
 plan=${PRL_PLAN:-$work/fp32}
 if [ -z "${PRL_PLAN:-}" ] && [ ! -f "$plan/plan.json" ]; then
     $prl import nanotrack --out "$work/model" >/dev/null

@@ -13,12 +13,8 @@ frames=${1:-100000}
 shared=${PRL_SHARED:-$(cd .. && pwd)/shared}
 work=target/soak
 mkdir -p "$work"
-if [ -n "${PRL_BIN:-}" ]; then
-    prl=$PRL_BIN
-else
-    cargo build -q --release --bin prl
-    prl=target/release/prl
-fi
+source scripts/prl-bin.sh
+use_prl release
 seq="$shared/data/uav123_10fps/building4"
 if [ ! -f "$work/fp32/plan.json" ]; then
     $prl import nanotrack --out "$work/model" >/dev/null
