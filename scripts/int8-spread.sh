@@ -25,7 +25,8 @@ fi
 case $seeds in '' | *[!0-9]* | 0) echo "int8-spread.sh: SEEDS must be a positive whole number, not '$seeds'" >&2; exit 2 ;; esac
 recipe=("$@")
 if [ ${#recipe[@]} -eq 0 ]; then
-    recipe=(--frames-per-seq 128 --method minmax --min-macs 1000000 --min-out-channels 16 --budget 6)
+    source scripts/nanotrack-int8-recipe.sh
+    recipe=("${nanotrack_int8_recipe[@]}")
 fi
 shared=${PRL_SHARED:-$(cd .. && pwd)/shared}
 data=$shared/data/uav123_10fps

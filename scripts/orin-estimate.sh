@@ -50,9 +50,9 @@ plans=(nanotrack-fp32 nanotrack-int8)
 if [ ! -d "$W/nanotrack-int8" ]; then
     "$HOST" import nanotrack --out "$W/nanotrack-model"
     "$HOST" compile --model "$W/nanotrack-model" --out "$W/nanotrack-fp32"
-    # The README's NanoTrack int8 recipe.
-    "$HOST" quantize --plan "$W/nanotrack-fp32" --calib "$SEQ" --frames-per-seq 128 --method minmax \
-        --budget 6 --min-macs 1000000 --min-out-channels 16 --out "$W/nanotrack-int8" >/dev/null
+    source scripts/nanotrack-int8-recipe.sh
+    "$HOST" quantize --plan "$W/nanotrack-fp32" --calib "$SEQ" "${nanotrack_int8_recipe[@]}" \
+        --out "$W/nanotrack-int8" >/dev/null
 fi
 if [ -z "${NANOTRACK_ONLY:-}" ]; then
     plans+=(prl-fp32 prl-fp32-wg prl-int8)
