@@ -468,17 +468,12 @@ pub(crate) fn depthwise(model: &TypedModel, node: &TypedNode) -> TractResult<Opt
 }
 
 /// `op` (standing for `node`) reading the u8 input of the [`DequantizeU8`] that makes its
-/// input, where that is the dequantiser's only reader ([`DepthwiseConv::reading`]; the
-/// dequantiser, left without readers, goes when the graph is compacted), with the input it
-/// reads; else `op` and its own input.
+/// input, where that is the dequantiser's only reader ([`DepthwiseConv::reading`],
+/// [`super::quant::dequantized_input`]), with the input it reads; else `op` and its own input.
 pub(crate) fn past_dequantize(model: &TypedModel, node: &TypedNode, op: DepthwiseConv) -> (DepthwiseConv, OutletId) {
-    let x = node.inputs[0];
-    let producer = model.node(x.node);
-    match producer.op_as::<DequantizeU8>() {
-        Some(dq) if model.outlet_successors(x).len() == 1 && !model.output_outlets().is_ok_and(|o| o.contains(&x)) => {
-            (op.reading(dq.clone()), producer.inputs[0])
-        }
-        _ => (op, x),
+    match super::quant::dequantized_input(model, node.inputs[0]) {
+        Some((dq, x)) => (op.reading(dq), x),
+        None => (op, node.inputs[0]),
     }
 }
 

@@ -180,9 +180,9 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
                 done.permutes += 1;
                 chain = c;
                 (Box::new(op), tvec![node.inputs[0]])
-            } else if xcorr::matches(model, node)? {
+            } else if let Some((op, inputs)) = xcorr::xcorr(model, node)? {
                 done.correlations += 1;
-                (Box::new(DepthwiseXCorr), node.inputs.iter().copied().collect())
+                (Box::new(op), inputs)
             } else {
                 continue;
             };

@@ -284,6 +284,17 @@ impl TypedOp for DequantizeU8 {
     as_op!();
 }
 
+/// The [`DequantizeU8`] that makes `x` and the u8 outlet it reads, where `x` has no other
+/// reader and is not a graph output: an operator that can dequantise its input itself reads
+/// the u8 data instead (the dequantiser, left without readers, goes when the graph is
+/// compacted).
+pub(crate) fn dequantized_input(model: &TypedModel, x: OutletId) -> Option<(DequantizeU8, OutletId)> {
+    let producer = model.node(x.node);
+    let dq = producer.op_as::<DequantizeU8>()?;
+    let alone = model.outlet_successors(x).len() == 1 && !model.output_outlets().is_ok_and(|o| o.contains(&x));
+    alone.then(|| (dq.clone(), producer.inputs[0]))
+}
+
 /// The [`DequantizeU8`] for `node` if it is tract's `DequantizeLinearF32` of a u8 tensor.
 pub(crate) fn dequantize_u8(model: &TypedModel, node: &TypedNode) -> TractResult<Option<DequantizeU8>> {
     let Some(op) = node.op_as::<DequantizeLinearF32>() else { return Ok(None) };

@@ -7,22 +7,51 @@
 //! on 2 threads. [`super::accelerate`] replaces every depthwise `Conv` with a non-constant
 //! kernel by [`DepthwiseXCorr`], which keeps 16-column strips of output rows in registers
 //! ([`super::xcorr_kernel`]) and spreads channels over tract's thread pool.
+//!
+//! In an int8 plan the search features come out of integer layers as u8 and were dequantised
+//! for the correlation alone: a pass writing f32 maps of up to 1.8 MB that the memory bus, not
+//! the cores, bounds (PRL-Track's five took 0.8 ms of a 25 ms two-thread step and did not
+//! scale with threads). The correlation reads the u8 features instead and dequantises each
+//! channel's plane into the thread's scratch on its way ([`DepthwiseXCorr::reading`]).
 
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
+use super::quant::DequantizeU8;
 use super::xcorr_kernel::{correlate_channel, Geometry};
 use super::{all_ones, no_padding, output_tensor, par_chunks};
 
 /// `out[n,c,y,x] = bias[c] + Σ_{i,j} input[n,c,y+i,x+j]·kernel[c,0,i,j]`: inputs `input`
 /// `[N,C,H,W]`, `kernel` `[C,1,kh,kw]` and `bias` (a scalar or `[C]`), all f32; no padding, stride 1.
+/// Or `input` u8, dequantised plane by plane on its way ([`Self::reading`]).
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct DepthwiseXCorr;
+pub struct DepthwiseXCorr {
+    /// The input is u8, dequantised by this (and its activation) plane by plane.
+    dequant: Option<DequantizeU8>,
+}
+
+impl DepthwiseXCorr {
+    /// The correlation of f32 inputs.
+    pub fn new() -> Self {
+        DepthwiseXCorr::default()
+    }
+
+    /// The correlation of `dequant`'s output, reading its u8 input instead: each channel's
+    /// plane is dequantised (with the dequantiser's activation) into the thread's scratch, the
+    /// values the dequantiser would have written, so the same outputs bit for bit.
+    pub(crate) fn reading(dequant: DequantizeU8) -> Self {
+        DepthwiseXCorr { dequant: Some(dequant) }
+    }
+}
 
 impl Op for DepthwiseXCorr {
     fn name(&self) -> StaticName {
         "DepthwiseXCorr".into()
+    }
+
+    fn info(&self) -> TractResult<Vec<String>> {
+        Ok(if self.dequant.is_some() { vec!["u8 input dequantised".to_string()] } else { vec![] })
     }
 
     op_as_typed_op!();
@@ -45,24 +74,56 @@ impl EvalOp for DepthwiseXCorr {
         );
         let g = Geometry { h, w, kh, kw };
         let (input, kernel, bias) = (input.try_as_plain_ram()?, kernel.try_as_plain_ram()?, bias.try_as_plain_ram()?);
-        let (input, kernel, bias) = (input.as_slice::<f32>()?, kernel.as_slice::<f32>()?, bias.as_slice::<f32>()?);
+        let (kernel, bias) = (kernel.as_slice::<f32>()?, bias.as_slice::<f32>()?);
         ensure!(bias.len() == 1 || bias.len() == c, "DepthwiseXCorr: {} bias values for {c} channels", bias.len());
+        // The data: f32, or u8 dequantised plane by plane.
+        let data = match &self.dequant {
+            None => Data::F32(input.as_slice::<f32>()?),
+            Some(dq) => {
+                let dt = input.datum_type();
+                ensure!(dt.unquantized() == u8::datum_type(), "DepthwiseXCorr: input is {dt:?}, not u8");
+                // SAFETY: the storage is u8, possibly with quantisation parameters (checked).
+                Data::U8(unsafe { input.as_slice_unchecked::<u8>() }, dq)
+            }
+        };
         let plane = g.out_h() * g.out_w();
-        let one = |plane_ix: usize, dst: &mut [f32], scratch: &mut [f32]| {
-            let ch = plane_ix % c;
-            let src = &input[plane_ix * h * w..(plane_ix + 1) * h * w];
-            let k = &kernel[ch * kh * kw..(ch + 1) * kh * kw];
-            let b = if bias.len() == 1 { bias[0] } else { bias[ch] };
-            correlate_channel(g, src, k, b, dst, scratch);
+        // Each thread's scratch is its own and kept from frame to frame (correlate_channel
+        // writes every value it reads; a dequantised plane is written whole before it is read).
+        let (dequantised, scratch) = match data {
+            Data::F32(_) => (0, g.scratch_len()),
+            Data::U8(..) => (h * w, g.scratch_len()),
+        };
+        let one = |plane_ix: usize, dst: &mut [f32]| {
+            super::with_padded(dequantised + scratch, &[], |buffer| {
+                let (plane, scratch) = buffer.split_at_mut(dequantised);
+                let at = plane_ix * h * w..(plane_ix + 1) * h * w;
+                let src = match data {
+                    Data::F32(x) => &x[at],
+                    Data::U8(x, dq) => {
+                        dq.apply(&x[at], plane);
+                        &plane[..]
+                    }
+                };
+                let ch = plane_ix % c;
+                let k = &kernel[ch * kh * kw..(ch + 1) * kh * kw];
+                let b = if bias.len() == 1 { bias[0] } else { bias[ch] };
+                correlate_channel(g, src, k, b, dst, scratch);
+            })
         };
         let out = output_tensor(&[n, c, g.out_h(), g.out_w()], |out: &mut [f32]| {
-            // Each thread's scratch is its own and kept from frame to frame (correlate_channel
-            // writes every value it reads).
-            par_chunks(out, plane, |i, dst| super::with_padded(g.scratch_len(), &[], |s| one(i, dst, s)));
+            par_chunks(out, plane, one);
             Ok(())
         })?;
         Ok(tvec!(out.into_tvalue()))
     }
+}
+
+/// The correlation's data input.
+#[derive(Clone, Copy)]
+enum Data<'a> {
+    F32(&'a [f32]),
+    /// u8, and the dequantiser it goes through.
+    U8(&'a [u8], &'a DequantizeU8),
 }
 
 impl TypedOp for DepthwiseXCorr {
@@ -82,9 +143,26 @@ impl TypedOp for DepthwiseXCorr {
     as_op!();
 }
 
+/// The [`DepthwiseXCorr`] for `node` of `model` if it is a depthwise cross-correlation
+/// ([`matches`]), with its inputs: the u8 data of a dequantiser that feeds it alone where there
+/// is one ([`DepthwiseXCorr::reading`]).
+pub(crate) fn xcorr(model: &TypedModel, node: &TypedNode) -> TractResult<Option<(DepthwiseXCorr, TVec<OutletId>)>> {
+    if !matches(model, node)? {
+        return Ok(None);
+    }
+    let mut inputs: TVec<OutletId> = node.inputs.iter().copied().collect();
+    Ok(Some(match super::quant::dequantized_input(model, inputs[0]) {
+        Some((dq, x)) => {
+            inputs[0] = x;
+            (DepthwiseXCorr::reading(dq), inputs)
+        }
+        None => (DepthwiseXCorr::new(), inputs),
+    }))
+}
+
 /// Whether `node` of `model` is a depthwise cross-correlation: a float `Conv` with one group
 /// per channel, a kernel that is not a constant, no padding, stride and dilation 1, NCHW.
-pub(crate) fn matches(model: &TypedModel, node: &TypedNode) -> TractResult<bool> {
+fn matches(model: &TypedModel, node: &TypedNode) -> TractResult<bool> {
     let Some(conv) = node.op_as::<Conv>() else { return Ok(false) };
     let facts = model.node_input_facts(node.id)?;
     let ps = &conv.pool_spec;
@@ -101,4 +179,50 @@ pub(crate) fn matches(model: &TypedModel, node: &TypedNode) -> TractResult<bool>
         && facts[1].konst.is_none()
         && facts.iter().all(|f| f.datum_type == f32::datum_type())
         && facts[1].shape.as_concrete().is_some_and(|s| s.len() == 4 && s[1] == 1))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ops::act::Activation;
+
+    /// Reading u8 data through a dequantiser (and its activation) gives, bit for bit, the
+    /// correlation of what the dequantiser writes, with a kernel as wide as the input and one
+    /// that leaves two strips of output columns, a bias per channel and a shared one.
+    #[test]
+    fn reading_u8_equals_the_correlation_of_the_dequantised_input() {
+        let relu = Activation { lo: 0.0, hi: f32::INFINITY, hard_swish: false };
+        for (n, c, h, w, kh, kw, act, per_channel) in [
+            (1, 3, 6, 75, 3, 3, relu, true),
+            (2, 5, 13, 13, 13, 13, Activation::NONE, false),
+            (1, 4, 31, 33, 7, 5, relu, true),
+        ] {
+            let n_in = n * c * h * w;
+            let bytes: Vec<u8> = (0..n_in).map(|i| (i * 7919 % 251) as u8).collect();
+            let kernel: Vec<f32> = (0..c * kh * kw).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+            let bias: Vec<f32> = if per_channel { (0..c).map(|o| o as f32 / 4.0).collect() } else { vec![0.5] };
+            let dq = DequantizeU8::new(0.0473, 117).with_act(act);
+            let mut dequantised = vec![0f32; n_in];
+            dq.apply(&bytes, &mut dequantised);
+            assert!(dequantised.iter().any(|&v| v > 0.0) && dequantised.iter().any(|&v| v <= 0.0));
+            let run = |op: &DepthwiseXCorr, x: Tensor| {
+                let k = tract_ndarray::Array4::from_shape_vec((c, 1, kh, kw), kernel.clone()).unwrap().into_tensor();
+                let b = tract_ndarray::Array1::from_vec(bias.clone()).into_tensor();
+                let out =
+                    op.eval(&EvalContext::out_of_plan(), tvec![x.into_tvalue(), k.into_tvalue(), b.into_tvalue()]);
+                out.unwrap()[0].try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().to_vec()
+            };
+            let dims = (n, c, h, w);
+            let want = run(
+                &DepthwiseXCorr::new(),
+                tract_ndarray::Array4::from_shape_vec(dims, dequantised).unwrap().into_tensor(),
+            );
+            let got = run(
+                &DepthwiseXCorr::reading(dq),
+                tract_ndarray::Array4::from_shape_vec(dims, bytes).unwrap().into_tensor(),
+            );
+            assert_eq!(got.len(), n * c * (h - kh + 1) * (w - kw + 1));
+            assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "{:?}", (n, c, h, w, kh, kw));
+        }
+    }
 }
