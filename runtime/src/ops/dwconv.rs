@@ -371,18 +371,19 @@ impl EvalOp for DepthwiseConv {
         // costs more than it saves).
         let macs = plane * s.kh * s.kw;
         let group = (SERIAL_MACS / 8 / macs.max(1)).clamp(1, n * c);
+        // The thread's buffer: the padded scratch (its borders zero), then a plane for the
+        // dequantised input where the input is u8 (allocated per group and frame, it was).
+        let scratch_len = Self::scratch_len(s);
+        let buffer_len = scratch_len + if self.dequant.is_some() { h * w } else { 0 };
         let run = |g: usize, dst: &mut [f32]| {
-            let mut dequantised = match data {
-                Data::F32(_) => vec![],
-                Data::U8(..) => vec![0.0; h * w],
-            };
-            super::with_padded(Self::scratch_len(s), &self.borders, |scratch| {
+            super::with_padded(buffer_len, &self.borders, |buffer| {
+                let (scratch, dequantised) = buffer.split_at_mut(scratch_len);
                 for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
                     let p = g * group + k;
                     let src = match data {
                         Data::F32(x) => &x[p * h * w..(p + 1) * h * w],
                         Data::U8(x, dq) => {
-                            dq.apply(&x[p * h * w..(p + 1) * h * w], &mut dequantised);
+                            dq.apply(&x[p * h * w..(p + 1) * h * w], dequantised);
                             &dequantised[..]
                         }
                     };
