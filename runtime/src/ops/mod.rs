@@ -272,20 +272,31 @@ fn output_tensor<T: Datum>(shape: &[usize], fill: impl FnOnce(&mut [T]) -> Tract
     Ok(t)
 }
 
-/// As [`output_tensor`] for f32, without zeroing the tensor first (a pass over the whole
-/// output, and page faults on large ones, that a kernel writing every element does not need).
+/// As [`output_tensor`] for f32 or u8, without zeroing the tensor first (a pass over the
+/// whole output on one thread, and page faults on large ones, that a kernel writing every
+/// element does not need). In debug builds (the tests) every byte is 0xFF first, so that a
+/// value left unwritten reads as NaN (f32) or 255 (u8), not as a zero that fresh memory
+/// happens to hold.
 ///
 /// # Safety
 /// `fill` writes every element of the slice it is given before the tensor is read.
-unsafe fn output_tensor_written(
+unsafe fn output_tensor_written<T: Datum + Copy>(
     shape: &[usize],
-    fill: impl FnOnce(&mut [f32]) -> TractResult<()>,
+    fill: impl FnOnce(&mut [T]) -> TractResult<()>,
 ) -> TractResult<Tensor> {
-    // SAFETY: every bit pattern is an f32, and the caller's `fill` writes every element.
-    let mut t = unsafe { Tensor::uninitialized_dt(f32::datum_type(), shape)? };
+    debug_assert!([f32::datum_type(), u8::datum_type()].contains(&T::datum_type()));
+    // SAFETY: every bit pattern is an f32 or a u8 (asserted), and the caller's `fill` writes
+    // every element.
+    let mut t = unsafe { Tensor::uninitialized_dt(T::datum_type(), shape)? };
     {
         let mut plain = t.try_as_plain_ram_mut()?;
-        fill(plain.as_slice_mut::<f32>()?)?;
+        let values = plain.as_slice_mut::<T>()?;
+        #[cfg(debug_assertions)]
+        // SAFETY: the slice's own bytes; all-ones bytes are a valid f32 (NaN) and u8 (255).
+        unsafe {
+            std::ptr::write_bytes(values.as_mut_ptr(), 0xFF, values.len())
+        };
+        fill(values)?;
     }
     Ok(t)
 }

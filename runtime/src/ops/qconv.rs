@@ -35,7 +35,7 @@ use super::qconv_kernel::{avx2_pairs, bytemuck_words, exact_fits, requantise, ti
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant, Planes};
 use super::qconv_lanes::QLanePack;
-use super::{all_ones, output_tensor, pads_2d, par_chunks, same_bits, ConvShape};
+use super::{all_ones, output_tensor, output_tensor_written, pads_2d, par_chunks, same_bits, ConvShape};
 
 /// Output channels per tile.
 pub(super) const ROWS: usize = 8;
@@ -151,7 +151,7 @@ impl EvalOp for PackedQConv {
         let path = words_path().ok_or_else(|| format_err!("PackedQConv: no integer dot product on this CPU"))?;
         let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| self.requant(path, o, sums, bytes);
         let shape: TVec<usize> = if self.batch == Batch::Kept { tvec![n, s.co, oh, ow] } else { tvec![s.co, oh, ow] };
-        let mut t = output_tensor(&shape, |out: &mut [u8]| {
+        let fill = |out: &mut [u8]| {
             for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
                 match &self.amx {
                     Some(amx) => amx.run(s, src, self.x0, (&self.offset, &self.scale, self.exact, self.y0), dst),
@@ -159,7 +159,11 @@ impl EvalOp for PackedQConv {
                 }
             }
             Ok(())
-        })?;
+        };
+        // SAFETY: every output byte is written: each path requantises every output position
+        // of every channel (the unit tests, whose debug builds fill the output with 255 first,
+        // hold each to the scalar reference).
+        let mut t = unsafe { output_tensor_written(&shape, fill)? };
         // SAFETY: same storage type (u8), the output fact's quantisation parameters.
         unsafe { t.set_datum_type(self.out_dt) };
         Ok(tvec!(t.into_tvalue()))

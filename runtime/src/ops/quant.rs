@@ -12,7 +12,7 @@ use tract_nnef::tract_core::ops::element_wise::ElementWiseOp;
 use tract_nnef::tract_core::ops::quant::{DequantizeLinearF32, QuantizeLinearU8};
 
 use super::act::{Activation, Tail};
-use super::{output_tensor, output_tensor_written, par_chunks, SHARE};
+use super::{output_tensor_written, par_chunks, SHARE};
 
 /// `y = clamp(round_half_even(x * scale) + zero_point, 0, 255)` for f32 `x` (`scale` is the
 /// reciprocal of the tensor's quantisation step, as in tract's `QuantizeLinearU8`).
@@ -136,10 +136,13 @@ impl EvalOp for QuantizeU8 {
         let xs = input.try_as_plain_ram()?;
         let xs = xs.as_slice::<f32>()?;
         let (scale, zp, share) = (self.scale, self.zero_point as i32, SHARE);
-        let out = output_tensor::<u8>(&shape, |ys| {
-            par_chunks(ys, share, |i, ys| kernel::quantize(&xs[i * share..][..ys.len()], ys, scale, zp));
-            Ok(())
-        })?;
+        // SAFETY: the chunks cover the whole output, and each is written whole.
+        let out = unsafe {
+            output_tensor_written::<u8>(&shape, |ys| {
+                par_chunks(ys, share, |i, ys| kernel::quantize(&xs[i * share..][..ys.len()], ys, scale, zp));
+                Ok(())
+            })?
+        };
         Ok(tvec!(out.into_tvalue()))
     }
 }

@@ -20,7 +20,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::quant::DequantizeU8;
 use super::xcorr_kernel::{correlate_channel, Geometry};
-use super::{all_ones, no_padding, output_tensor, par_chunks};
+use super::{all_ones, no_padding, output_tensor_written, par_chunks};
 
 /// `out[n,c,y,x] = bias[c] + Σ_{i,j} input[n,c,y+i,x+j]·kernel[c,0,i,j]`: inputs `input`
 /// `[N,C,H,W]`, `kernel` `[C,1,kh,kw]` and `bias` (a scalar or `[C]`), all f32; no padding, stride 1.
@@ -110,10 +110,14 @@ impl EvalOp for DepthwiseXCorr {
                 correlate_channel(g, src, k, b, dst, scratch);
             })
         };
-        let out = output_tensor(&[n, c, g.out_h(), g.out_w()], |out: &mut [f32]| {
-            par_chunks(out, plane, one);
-            Ok(())
-        })?;
+        // SAFETY: every channel's plane is written whole (`correlate_channel` writes every
+        // output of its channel).
+        let out = unsafe {
+            output_tensor_written(&[n, c, g.out_h(), g.out_w()], |out: &mut [f32]| {
+                par_chunks(out, plane, one);
+                Ok(())
+            })?
+        };
         Ok(tvec!(out.into_tvalue()))
     }
 }
