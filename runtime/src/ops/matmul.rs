@@ -68,7 +68,7 @@ impl EvalOp for ConstMatMul {
         // `proj`, `fc2`, the `[n][k]` products), else gathered over the threads (copied and
         // then the output zeroed on one thread, the two took 1.3 of a 6.3 ms share of
         // PRL-Track's two-thread step that does not halve).
-        ensure!(x.len() >= (n.len - 1) * n.input + (k.len - 1) * k.input + 1, "ConstMatMul: {} inputs", x.len());
+        ensure!(x.len() > (n.len - 1) * n.input + (k.len - 1) * k.input, "ConstMatMul: {} inputs", x.len());
         let gathered;
         let rows: &[f32] = if k.input == 1 && n.input == k.len {
             &x[..n.len * k.len]
