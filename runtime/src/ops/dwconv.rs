@@ -17,7 +17,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv::{ConstConv, ConvShape};
-use super::quant::DequantizeU8;
+use super::quant::{DequantizeU8, Planes};
 use super::{output_tensor_written, par_chunks, same_bits};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
@@ -352,17 +352,8 @@ impl EvalOp for DepthwiseConv {
             _ => bail!("DepthwiseConv: input {:?} for {s:?}", input.shape()),
         };
         ensure!((c, h, w) == (s.ci, s.h, s.w), "DepthwiseConv: input {:?} for {s:?}", input.shape());
-        let input = input.try_as_plain_ram()?;
         // The data: f32, or u8 dequantised plane by plane ([`Self::reading`]).
-        let data = match &self.dequant {
-            None => Data::F32(input.as_slice::<f32>()?),
-            Some(dq) => {
-                let dt = input.datum_type();
-                ensure!(dt.unquantized() == u8::datum_type(), "DepthwiseConv: input is {dt:?}, not u8");
-                // SAFETY: the storage is u8, possibly with quantisation parameters (checked).
-                Data::U8(unsafe { input.as_slice_unchecked::<u8>() }, dq)
-            }
-        };
+        let data = Planes::of("DepthwiseConv", &input, self.dequant.as_ref())?;
         let (oh, ow) = s.out();
         let shape: TVec<usize> = if self.batch { tvec![n, c, oh, ow] } else { tvec![c, oh, ow] };
         let plane = oh * ow;
@@ -374,20 +365,13 @@ impl EvalOp for DepthwiseConv {
         // The thread's buffer: the padded scratch (its borders zero), then a plane for the
         // dequantised input where the input is u8 (allocated per group and frame, it was).
         let scratch_len = Self::scratch_len(s);
-        let buffer_len = scratch_len + if self.dequant.is_some() { h * w } else { 0 };
+        let buffer_len = scratch_len + data.buffer_len(h * w);
         let run = |g: usize, dst: &mut [f32]| {
             super::with_padded(buffer_len, &self.borders, |buffer| {
                 let (scratch, dequantised) = buffer.split_at_mut(scratch_len);
                 for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
                     let p = g * group + k;
-                    let src = match data {
-                        Data::F32(x) => &x[p * h * w..(p + 1) * h * w],
-                        Data::U8(x, dq) => {
-                            dq.apply(&x[p * h * w..(p + 1) * h * w], dequantised);
-                            &dequantised[..]
-                        }
-                    };
-                    self.channel(p % c, src, d, scratch);
+                    self.channel(p % c, data.plane(p * h * w..(p + 1) * h * w, dequantised), d, scratch);
                 }
             })
         };
@@ -403,14 +387,6 @@ impl EvalOp for DepthwiseConv {
         let out = unsafe { output_tensor_written(&shape, fill)? };
         Ok(tvec!(reshape_output(out, self.reshape.as_ref())?.into_tvalue()))
     }
-}
-
-/// A [`DepthwiseConv`]'s input data.
-#[derive(Clone, Copy)]
-enum Data<'a> {
-    F32(&'a [f32]),
-    /// u8, and the dequantiser it goes through.
-    U8(&'a [u8], &'a DequantizeU8),
 }
 
 impl TypedOp for DepthwiseConv {

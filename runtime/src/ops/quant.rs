@@ -287,6 +287,56 @@ impl TypedOp for DequantizeU8 {
     as_op!();
 }
 
+/// An operator's f32 data input, or the u8 data it reads instead through the dequantiser that
+/// made it ([`dequantized_input`]), dequantised one plane at a time.
+#[derive(Clone, Copy)]
+pub(crate) enum Planes<'a> {
+    F32(&'a [f32]),
+    /// u8, and the dequantiser it goes through.
+    U8(&'a [u8], &'a DequantizeU8),
+}
+
+impl<'a> Planes<'a> {
+    /// `input`'s data: f32, or u8 where the operator reads through `dequant` (`op` names the
+    /// operator in the error).
+    pub(crate) fn of(op: &str, input: &'a Tensor, dequant: Option<&'a DequantizeU8>) -> TractResult<Planes<'a>> {
+        let plain = input.try_as_plain_ram()?;
+        Ok(match dequant {
+            None => Planes::F32(plain.as_slice::<f32>()?),
+            Some(dq) => {
+                let dt = input.datum_type();
+                ensure!(dt.unquantized() == u8::datum_type(), "{op}: input is {dt:?}, not u8");
+                // SAFETY: the storage is u8, possibly with quantisation parameters (checked).
+                Planes::U8(unsafe { plain.as_slice_unchecked::<u8>() }, dq)
+            }
+        })
+    }
+
+    /// The buffer [`Self::plane`] needs for planes of `len` values (none for f32 data).
+    pub(crate) fn buffer_len(&self, len: usize) -> usize {
+        match self {
+            Planes::F32(_) => 0,
+            Planes::U8(..) => len,
+        }
+    }
+
+    /// Values `range` as f32: the data's own, or dequantised into `buffer` (at least
+    /// [`Self::buffer_len`] long).
+    pub(crate) fn plane<'b>(&self, range: std::ops::Range<usize>, buffer: &'b mut [f32]) -> &'b [f32]
+    where
+        'a: 'b,
+    {
+        match *self {
+            Planes::F32(x) => &x[range],
+            Planes::U8(x, dq) => {
+                let values = &mut buffer[..range.len()];
+                dq.apply(&x[range], values);
+                values
+            }
+        }
+    }
+}
+
 /// The [`DequantizeU8`] that makes `x` and the u8 outlet it reads, where `x` has no other
 /// reader and is not a graph output: an operator that can dequantise its input itself reads
 /// the u8 data instead (the dequantiser, left without readers, goes when the graph is

@@ -18,7 +18,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
-use super::quant::DequantizeU8;
+use super::quant::{DequantizeU8, Planes};
 use super::xcorr_kernel::{correlate_channel, Geometry};
 use super::{all_ones, no_padding, output_tensor_written, par_chunks};
 
@@ -73,37 +73,19 @@ impl EvalOp for DepthwiseXCorr {
             input.shape()
         );
         let g = Geometry { h, w, kh, kw };
-        let (input, kernel, bias) = (input.try_as_plain_ram()?, kernel.try_as_plain_ram()?, bias.try_as_plain_ram()?);
+        let (kernel, bias) = (kernel.try_as_plain_ram()?, bias.try_as_plain_ram()?);
         let (kernel, bias) = (kernel.as_slice::<f32>()?, bias.as_slice::<f32>()?);
         ensure!(bias.len() == 1 || bias.len() == c, "DepthwiseXCorr: {} bias values for {c} channels", bias.len());
         // The data: f32, or u8 dequantised plane by plane.
-        let data = match &self.dequant {
-            None => Data::F32(input.as_slice::<f32>()?),
-            Some(dq) => {
-                let dt = input.datum_type();
-                ensure!(dt.unquantized() == u8::datum_type(), "DepthwiseXCorr: input is {dt:?}, not u8");
-                // SAFETY: the storage is u8, possibly with quantisation parameters (checked).
-                Data::U8(unsafe { input.as_slice_unchecked::<u8>() }, dq)
-            }
-        };
+        let data = Planes::of("DepthwiseXCorr", &input, self.dequant.as_ref())?;
         let plane = g.out_h() * g.out_w();
         // Each thread's scratch is its own and kept from frame to frame (correlate_channel
         // writes every value it reads; a dequantised plane is written whole before it is read).
-        let (dequantised, scratch) = match data {
-            Data::F32(_) => (0, g.scratch_len()),
-            Data::U8(..) => (h * w, g.scratch_len()),
-        };
+        let dequantised = data.buffer_len(h * w);
         let one = |plane_ix: usize, dst: &mut [f32]| {
-            super::with_padded(dequantised + scratch, &[], |buffer| {
+            super::with_padded(dequantised + g.scratch_len(), &[], |buffer| {
                 let (plane, scratch) = buffer.split_at_mut(dequantised);
-                let at = plane_ix * h * w..(plane_ix + 1) * h * w;
-                let src = match data {
-                    Data::F32(x) => &x[at],
-                    Data::U8(x, dq) => {
-                        dq.apply(&x[at], plane);
-                        &plane[..]
-                    }
-                };
+                let src = data.plane(plane_ix * h * w..(plane_ix + 1) * h * w, plane);
                 let ch = plane_ix % c;
                 let k = &kernel[ch * kh * kw..(ch + 1) * kh * kw];
                 let b = if bias.len() == 1 { bias[0] } else { bias[ch] };
@@ -120,14 +102,6 @@ impl EvalOp for DepthwiseXCorr {
         };
         Ok(tvec!(out.into_tvalue()))
     }
-}
-
-/// The correlation's data input.
-#[derive(Clone, Copy)]
-enum Data<'a> {
-    F32(&'a [f32]),
-    /// u8, and the dequantiser it goes through.
-    U8(&'a [u8], &'a DequantizeU8),
 }
 
 impl TypedOp for DepthwiseXCorr {
