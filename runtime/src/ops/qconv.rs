@@ -35,7 +35,9 @@ use super::qconv_kernel::{avx2_pairs, bytemuck_words, exact_fits, requantise, ti
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant, Planes};
 use super::qconv_lanes::QLanePack;
-use super::{all_ones, output_tensor, output_tensor_written, pads_2d, par_chunks, same_bits, ConvShape};
+use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits, ConvShape};
+#[cfg(target_arch = "x86_64")]
+use super::{par_for, SyncPtr};
 
 /// Output channels per tile.
 pub(super) const ROWS: usize = 8;
@@ -155,7 +157,7 @@ impl EvalOp for PackedQConv {
             for (src, dst) in input.chunks_exact(ci * h * w).zip(out.chunks_exact_mut(s.co * plane)) {
                 match &self.amx {
                     Some(amx) => amx.run(s, src, self.x0, (&self.offset, &self.scale, self.exact, self.y0), dst),
-                    None => self.run_words(path, src, requant, dst),
+                    None => self.run_words(path, Src::Planes(src), requant, dst, false),
                 }
             }
             Ok(())
@@ -195,46 +197,40 @@ impl PackedQConv {
 
     /// [`EvalOp::eval`] of a matrix product ([`Product`]).
     fn eval_product(&self, product: &Product, input: TValue) -> TractResult<TVec<TValue>> {
-        let s = &self.shape;
         ensure!(input.shape() == &*product.input, "PackedQConv: input {:?} for {product:?}", input.shape());
         let path = words_path().ok_or_else(|| format_err!("PackedQConv: no integer dot product on this CPU"))?;
         let input = input.try_as_plain_ram()?;
         // SAFETY: the datum type is u8, possibly with quantisation parameters (the op's match).
         let input = unsafe { input.as_slice_unchecked::<u8>() };
-        let (ci, m) = (s.ci, s.w);
-        let channels: Vec<u8>;
-        let src = if product.in_last {
-            channels = (0..ci * m).map(|i| input[(i % m) * ci + i / m]).collect();
-            &channels[..]
-        } else {
-            input
-        };
-        let mut planes = vec![0u8; s.co * m];
-        self.run_words(path, src, |o, sums, bytes| self.requant(path, o, sums, bytes), &mut planes);
-        let mut t = output_tensor(&product.output, |out: &mut [u8]| {
-            if product.out_last {
-                for (p, row) in out.chunks_exact_mut(s.co).enumerate() {
-                    for (o, v) in row.iter_mut().enumerate() {
-                        *v = planes[o * m + p];
-                    }
-                }
-            } else {
-                out.copy_from_slice(&planes);
-            }
+        let src = if product.in_last { Src::Rows(input) } else { Src::Planes(input) };
+        let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| self.requant(path, o, sums, bytes);
+        // Tokens last out: positions first, written so by the x86 tiles (products are made on
+        // those paths only: [`products_here`]).
+        ensure!(
+            !product.out_last || matches!(path, WordsPath::Vnni | WordsPath::Avx2),
+            "PackedQConv: a product on the {path:?} path"
+        );
+        let fill = |out: &mut [u8]| {
+            self.run_words(path, src, requant, out, product.out_last);
             Ok(())
-        })?;
+        };
+        // SAFETY: as in [`EvalOp::eval`]: every position of every channel is requantised.
+        let mut t = unsafe { output_tensor_written(&product.output, fill)? };
         // SAFETY: same storage type (u8), the output fact's quantisation parameters.
         unsafe { t.set_datum_type(self.out_dt) };
         Ok(tvec!(t.into_tvalue()))
     }
 
-    /// One NCHW image on words of four channels: AVX-512 VNNI, AVX2 or aarch64 SDOT.
+    /// One image on words of four channels: AVX-512 VNNI, AVX2 or aarch64 SDOT, into `dst`
+    /// as channels' planes or (`positions_first`, a matrix product's output on the x86 paths)
+    /// as rows of channels.
     fn run_words(
         &self,
         path: WordsPath,
-        src: &[u8],
+        src: Src,
         requant: impl Fn(usize, &[i32], &mut [u8]) + Sync,
         dst: &mut [u8],
+        positions_first: bool,
     ) {
         let s = &self.shape;
         let (hq, wq) = s.phase();
@@ -250,6 +246,10 @@ impl PackedQConv {
         let mut words = vec![u32::from_ne_bytes([self.x0 ^ flip; 4]); s.ci.div_ceil(4) * group_words + PX + wq];
         // Each group of four channels fills its own words, the groups side by side on the threads.
         par_chunks(bytemuck_words(&mut words), group_words * 4, |g, bytes| {
+            let src = match src {
+                Src::Planes(src) => src,
+                Src::Rows(rows) => return row_words(rows, s.ci, g, bytes, flip),
+            };
             if s.stride == 1 && 4 * g + 4 <= s.ci {
                 // Four whole channels: each position's word from the four rows at once (the byte
                 // by byte form below cost as much as the products on NanoTrack's 1x1 layers).
@@ -297,21 +297,23 @@ impl PackedQConv {
             // A 1x1 layer of stride 1: each tile of positions is consecutive outputs,
             // requantised in the tile's registers (VNNI's tiles of 32 positions, AVX2's of 8).
             let per_block = taps.len() * ROWS;
-            par_chunks(dst, ROWS * plane, |b, out| {
+            // Channel block `b`'s `rows` channels from `out`, in planes or positions first.
+            let block = |b: usize, out: *mut u8, rows: usize, positions_first: Option<usize>| {
                 let channels = b * ROWS..(b + 1) * ROWS;
                 let planes = Planes {
-                    out: out.as_mut_ptr(),
+                    out,
                     plane,
-                    rows: out.len() / plane,
+                    rows,
                     offset: &self.offset[channels.clone()],
                     scale: &self.scale[channels],
                     exact: self.exact,
                     y0: self.y0,
+                    positions_first,
                 };
                 // SAFETY: the path is one the CPU has ([`words_path`]: AVX-512F and VNNI, or
                 // AVX2 and FMA); every tile of every tap lies in `words` (padded by `PX + wp`
-                // words); the chunk holds `rows <= ROWS` whole planes of `positions` bytes;
-                // `pairs` holds two words per weight word.
+                // words); `out` holds the block's `rows <= ROWS` channels of `positions`
+                // outputs (below); `pairs` holds two words per weight word.
                 unsafe {
                     if path == WordsPath::Vnni {
                         let weights = &self.weights[b * per_block..(b + 1) * per_block];
@@ -327,9 +329,23 @@ impl PackedQConv {
                         )
                     }
                 }
-            });
+            };
+            if positions_first {
+                // Rows of `co` channels, one per position: each block writes its channels'
+                // bytes of every row (disjoint columns of the same rows).
+                assert_eq!(dst.len(), s.co * plane);
+                let out = SyncPtr(dst.as_mut_ptr());
+                // SAFETY: `b · ROWS < co`, within `dst`; the blocks' columns are disjoint.
+                par_for(s.co.div_ceil(ROWS), |b| {
+                    block(b, unsafe { out.at(b * ROWS) }, (s.co - b * ROWS).min(ROWS), Some(s.co))
+                });
+            } else {
+                // Each chunk is `rows` whole planes.
+                par_chunks(dst, ROWS * plane, |b, out| block(b, out.as_mut_ptr(), out.len() / plane, None));
+            }
             return;
         }
+        assert!(!positions_first, "PackedQConv: rows of channels are written by the x86 1x1 tiles only");
         if let (WordsPath::Vnni, Some(lanes)) = (path, &self.lanes) {
             lanes.run(&self.layout, words, self.y0, dst);
             return;
@@ -384,6 +400,30 @@ impl PackedQConv {
                 requant(b * ROWS + r, &gathered, out);
             }
         });
+    }
+}
+
+/// The input of [`PackedQConv::run_words`]: channels' planes (NCHW), or, for a matrix product,
+/// rows of `K` channels one position after another (`[M, K]`, HMG's tokens).
+#[derive(Clone, Copy)]
+enum Src<'a> {
+    Planes(&'a [u8]),
+    Rows(&'a [u8]),
+}
+
+/// Group `g`'s words of a 1x1 layer without padding from rows of `ci` channels a position
+/// (`rows` is `[positions, ci]`): position `p`'s word is its channels `4g .. 4g + 4`, the
+/// four bytes read as they lie (with the top bits flipped for SDOT). `bytes` is the group's
+/// share of the words (the part past the last group is padding, left as it is).
+fn row_words(rows: &[u8], ci: usize, g: usize, bytes: &mut [u8], flip: u8) {
+    let (lo, hi) = (4 * g, (4 * g + 4).min(ci));
+    if lo >= ci {
+        return;
+    }
+    for (p, row) in rows.chunks_exact(ci).enumerate() {
+        for (c, &v) in row[lo..hi].iter().enumerate() {
+            bytes[4 * p + c] = v ^ flip;
+        }
     }
 }
 
@@ -503,6 +543,30 @@ fn words_path() -> Option<WordsPath> {
 /// Whether the words path is VNNI's (whose tiles in lanes serve 1x1 layers).
 fn has_vnni_words() -> bool {
     words_path() == Some(WordsPath::Vnni)
+}
+
+/// Whether HMG's linear layers run as [`PackedQConv`]s here ([`matmul_shape`]): on the AVX2
+/// words path, and on VNNI's unless tract's integer products run on AMX tiles (its
+/// `avx512amx_mmm_i32_16x16` took them in 2.35-2.41 ms per PRL-Track int8 step on one thread,
+/// 1.46-1.52 on two, against 3.0-3.1 and 1.83-1.85 on VNNI, 2026-12-06).
+fn products_here() -> bool {
+    match words_path() {
+        Some(WordsPath::Avx2) => true,
+        Some(WordsPath::Vnni) => !tract_amx_int8(),
+        _ => false,
+    }
+}
+
+/// Whether tract's integer matrix products run on AMX tiles here (`TRACT_CPU_ISA=-amx-int8`
+/// heeded).
+fn tract_amx_int8() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use tract_nnef::prelude::tract_linalg::isa::{native, Isa};
+        native().has(Isa::X86_64AmxInt8) && super::qconv_amx::available()
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
 }
 
 /// Whether a [`PackedQConv`] can run here.
@@ -668,14 +732,17 @@ fn q_einsum_terms(node: &TypedNode) -> Option<(Vec<Vec<char>>, Vec<char>)> {
 /// linear layers (`akm,kn->mn`, `mk,kn->anm`, whatever the letters: the input `[.., K, M]` or
 /// `[.., M, K]`, the weights `K x N` or `N x K`, the output `[.., M, N]` or `[.., N, M]`, a
 /// leading axis of 1 allowed on either side), as a 1x1 [`ConvShape`] of `K` channels on a
-/// 1 x `M` map, with its layouts and whether the weights are `K x N`. Only on the AVX2 words
-/// path: there tract's integer kernel (`avx2_mmm_i32_8x8`) ran PRL-Track's eight such
-/// products at 1.3 GOP/s on an AMD EPYC, 830 of a 1000 ms int8 step. On VNNI and SDOT tract's
-/// kernels serve them: on SDOT this form was measured (instructions counted under qemu, cycles
-/// modelled for a Cortex-A78, 2026-12-05) at 183 ms per PRL-Track int8 step against 178 with
-/// tract's `arm64simd_mmm_i32_8x8_dot`; on VNNI it was not.
+/// 1 x `M` map, with its layouts and whether the weights are `K x N`. Where [`products_here`]:
+/// on the AVX2 words path tract's integer kernel (`avx2_mmm_i32_8x8`) ran PRL-Track's eight
+/// such products at 1.3 GOP/s on an AMD EPYC, 830 of a 1000 ms int8 step; on VNNI (AMX off)
+/// its `avx512vnni_mmm_i32_16x16` with its packing took 4.8 ms a step on one thread and 2.7
+/// on two, this form 2.8-2.9 and 1.7 (tokens-first rows read as words, the output written
+/// tokens first by the tiles: 2026-12-06). On SDOT tract's kernels serve them: this form was
+/// measured there (instructions counted under qemu, cycles modelled for a Cortex-A78,
+/// 2026-12-05, before those two changes) at 183 ms per PRL-Track int8 step against 178 with
+/// tract's `arm64simd_mmm_i32_8x8_dot`.
 fn matmul_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Product, bool)> {
-    if words_path() != Some(WordsPath::Avx2) {
+    if !products_here() {
         return None;
     }
     let (terms, out) = q_einsum_terms(node)?;
@@ -1066,16 +1133,19 @@ mod tests {
         // Not a pointwise convolution (the weights' axes the other way round): left alone.
         run("NIHW,IO,O,,,,,,->NOHW", &[1, 24, 5, 7], &[24, 40], 0);
         run("IHW,IO,O,,,,,,->OHW", &[24, 5, 7], &[24, 40], 0);
-        // HMG's linear layers (`akm,kn->mn`, tokens out last), made only on the AVX2 words
-        // path; and without the leading axis.
-        let avx2 = usize::from(words_path() == Some(WordsPath::Avx2));
-        if avx2 == 0 {
-            eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 words path (PRL_ISA=avx2 on an AVX2 machine): NOT tested here");
+        // HMG's linear layers (`akm,kn->mn`, tokens out last), made only on the x86 words
+        // paths; and without the leading axis.
+        let made = usize::from(products_here());
+        if made == 0 {
+            eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 and VNNI words paths, VNNI's where tract's AMX kernels do not take the products (TRACT_CPU_ISA=-amx-int8 reaches it): NOT tested here");
         }
-        run("akm,kn,n,,,,,,->mn", &[1, 48, 121], &[48, 72], avx2);
-        run("km,nk,n,,,,,,->mn", &[36, 37], &[20, 36], avx2);
+        run("akm,kn,n,,,,,,->mn", &[1, 48, 121], &[48, 72], made);
+        run("km,nk,n,,,,,,->mn", &[36, 37], &[20, 36], made);
         // Tokens first in, channels first out, a new leading axis (HMG's `proj` and `fc2`).
-        run("mk,kn,n,,,,,,->anm", &[121, 40], &[40, 24], avx2);
+        run("mk,kn,n,,,,,,->anm", &[121, 40], &[40, 24], made);
+        // Tokens first in and out, input channels that are not whole words, output channels
+        // that are not whole blocks of 8, positions that are not whole tiles.
+        run("mk,kn,n,,,,,,->mn", &[70, 39], &[39, 20], made);
     }
 
     /// With one scale, the einsums made `PackedQConv`s (a 1x1 convolution; a product, on the
@@ -1104,12 +1174,12 @@ mod tests {
     fn rounds_as_tract_s_kernels(x_scale: f32, w_scale: f32, y_scale: f32, biases: [i32; 4]) {
         let scale = x_scale * w_scale / y_scale;
         let exact = biases[0] * Scaler::new(scale, RoundingPolicy::Even);
-        let avx2 = words_path() == Some(WordsPath::Avx2);
-        if !avx2 {
-            eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 words path (PRL_ISA=avx2 on an AVX2 machine): its rounding is NOT tested here");
+        let products = products_here();
+        if !products {
+            eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 and VNNI words paths, VNNI's where tract's AMX kernels do not take the products (TRACT_CPU_ISA=-amx-int8 reaches it): its rounding is NOT tested here");
         }
         let forms: [(&str, &[usize], bool); 2] =
-            [("NIHW,OI,O,,,,,,->NOHW", &[1, 4, 3, 1], true), ("mk,kn,n,,,,,,->anm", &[3, 4], avx2)];
+            [("NIHW,OI,O,,,,,,->NOHW", &[1, 4, 3, 1], true), ("mk,kn,n,,,,,,->anm", &[3, 4], products)];
         for (expr, x_shape, made) in forms {
             if !made {
                 continue;

@@ -308,8 +308,9 @@ pub(super) unsafe fn tiles_vnni(words: &[u32], taps: &[usize], weights: &[i32], 
 
 /// Where the requantising tiles ([`tiles_vnni_requant`], [`tiles_avx2_requant`]) store their
 /// bytes and how they requantise them: `rows` (at most `ROWS`) channels' planes of `plane`
-/// bytes from `out`, with each channel's offset and scale, the rounding ([`requant_one`]'s
-/// `exact`) and the output zero point.
+/// bytes from `out` (or, with `positions_first`, each position's `rows` bytes side by side at
+/// `out + q·stride`: a matrix product's rows of channels), with each channel's offset and
+/// scale, the rounding ([`requant_one`]'s `exact`) and the output zero point.
 #[cfg(target_arch = "x86_64")]
 #[derive(Clone, Copy)]
 pub(super) struct Planes<'a> {
@@ -320,6 +321,59 @@ pub(super) struct Planes<'a> {
     pub scale: &'a [f32],
     pub exact: bool,
     pub y0: u8,
+    /// The bytes are stored positions first, each position's `stride` apart.
+    pub positions_first: Option<usize>,
+}
+
+/// `ROWS` channels' bytes of up to 16 positions (`bytes[r]`'s byte `q`: channel `r`, position
+/// `q`) stored positions first: position `q < n`'s `rows` bytes at `out + q·stride` (SSE2's
+/// byte, word and dword unpacks transpose them: a scalar transpose after the product took a
+/// third of HMG's products on two threads).
+///
+/// # Safety
+/// `out + q·stride + r` is writable for `q < n <= 16`, `r < rows <= ROWS`.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+unsafe fn store_positions_first(
+    bytes: &[std::arch::x86_64::__m128i; ROWS],
+    n: usize,
+    rows: usize,
+    out: *mut u8,
+    stride: usize,
+) {
+    use std::arch::x86_64::*;
+    debug_assert!(n <= 16 && rows <= ROWS);
+    // SAFETY: SSE2 is part of x86_64; the caller guarantees the stores' bounds.
+    unsafe {
+        let pair = |i: usize| (_mm_unpacklo_epi8(bytes[i], bytes[i + 1]), _mm_unpackhi_epi8(bytes[i], bytes[i + 1]));
+        let ((a0, a1), (b0, b1), (c0, c1), (d0, d1)) = (pair(0), pair(2), pair(4), pair(6));
+        // Four channels of four positions a register: channels 0-3 (e), 4-7 (f).
+        let e = [
+            _mm_unpacklo_epi16(a0, b0),
+            _mm_unpackhi_epi16(a0, b0),
+            _mm_unpacklo_epi16(a1, b1),
+            _mm_unpackhi_epi16(a1, b1),
+        ];
+        let f = [
+            _mm_unpacklo_epi16(c0, d0),
+            _mm_unpackhi_epi16(c0, d0),
+            _mm_unpacklo_epi16(c1, d1),
+            _mm_unpackhi_epi16(c1, d1),
+        ];
+        for q in 0..n {
+            // Positions 2i and 2i + 1's eight channels.
+            let g =
+                if q % 4 < 2 { _mm_unpacklo_epi32(e[q / 4], f[q / 4]) } else { _mm_unpackhi_epi32(e[q / 4], f[q / 4]) };
+            let g = if q % 2 == 0 { g } else { _mm_unpackhi_epi64(g, g) };
+            let at = out.add(q * stride);
+            if rows == ROWS {
+                _mm_storel_epi64(at.cast(), g);
+            } else {
+                let v = (_mm_cvtsi128_si64(g) as u64).to_le_bytes();
+                std::ptr::copy_nonoverlapping(v.as_ptr(), at, rows);
+            }
+        }
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -329,6 +383,7 @@ impl<'a> Planes<'a> {
     fn checked(&self, positions: usize) -> Planes<'a> {
         let rows = self.rows;
         assert!(rows <= ROWS && self.offset.len() >= rows && self.scale.len() >= rows && positions <= self.plane);
+        assert!(self.positions_first.is_none_or(|stride| stride >= rows));
         *self
     }
 }
@@ -407,22 +462,31 @@ unsafe fn tile_avx2(base: *const i32, taps: &[usize], pairs: &[i32]) -> [std::ar
 #[target_feature(enable = "avx512f,avx512vnni")]
 pub(super) unsafe fn tiles_vnni_requant(words: &[u32], taps: &[usize], weights: &[i32], positions: usize, p: &Planes) {
     use std::arch::x86_64::*;
-    let Planes { out, plane, rows, offset, scale, exact, y0 } = p.checked(positions);
+    let Planes { out, plane, rows, offset, scale, exact, y0, positions_first } = p.checked(positions);
     for tile in 0..positions.div_ceil(PX) {
-        // SAFETY: the caller guarantees the loads are in bounds.
+        // SAFETY: the caller guarantees the loads are in bounds, and the stores: within the
+        // first `positions` outputs of each of the `rows` channels.
         unsafe {
             let a = tile_vnni(words.as_ptr().add(tile * PX).cast(), taps, weights);
             // The tile's real positions: all 32 but in the last.
             let n = (positions - tile * PX).min(PX);
             let keep = [(1u32 << n.min(16)) - 1, (1u32 << n.saturating_sub(16)) - 1].map(|m| m as u16);
-            for r in 0..rows {
-                let (o, c) = (_mm512_set1_epi32(offset[r]), _mm512_set1_ps(scale[r]));
-                for h in 0..2 {
-                    if keep[h] != 0 {
-                        let q = requant_lanes(a[2 * r + h], o, c, exact, y0);
-                        let at = out.add(r * plane + tile * PX + 16 * h);
-                        _mm512_mask_cvtepi32_storeu_epi8(at.cast(), keep[h], q);
+            for h in 0..2 {
+                if keep[h] == 0 {
+                    continue;
+                }
+                let first = tile * PX + 16 * h;
+                let mut bytes = [_mm_setzero_si128(); ROWS];
+                for r in 0..rows {
+                    let (o, c) = (_mm512_set1_epi32(offset[r]), _mm512_set1_ps(scale[r]));
+                    let q = requant_lanes(a[2 * r + h], o, c, exact, y0);
+                    match positions_first {
+                        None => _mm512_mask_cvtepi32_storeu_epi8(out.add(r * plane + first).cast(), keep[h], q),
+                        Some(_) => bytes[r] = _mm512_cvtepi32_epi8(q),
                     }
+                }
+                if let Some(stride) = positions_first {
+                    store_positions_first(&bytes, (n - 16 * h).min(16), rows, out.add(first * stride), stride);
                 }
             }
         }
@@ -471,18 +535,23 @@ pub(super) unsafe fn tiles_avx2(words: &[u32], taps: &[usize], pairs: &[i32], po
 #[target_feature(enable = "avx2,fma")]
 pub(super) unsafe fn tiles_avx2_requant(words: &[u32], taps: &[usize], pairs: &[i32], positions: usize, p: &Planes) {
     use std::arch::x86_64::*;
-    let Planes { out, plane, rows, offset, scale, exact, y0 } = p.checked(positions);
+    let Planes { out, plane, rows, offset, scale, exact, y0, positions_first } = p.checked(positions);
     let y = _mm256_set1_ps(y0 as f32);
     for first in (0..positions).step_by(8) {
         // SAFETY: the caller guarantees every tile's `PX` words from each tap are in `words`
         // (8 from `first` among them); `pairs` holds `2·ROWS` words per tap; the stores stay
-        // within the first `positions` bytes of each of the `rows` planes.
+        // within the first `positions` outputs of each of the `rows` channels.
         unsafe {
             let base = words.as_ptr().add(first).cast::<i32>();
             let a = tile_avx2(base, taps, pairs);
             let n = (positions - first).min(8);
+            let mut bytes = [_mm_setzero_si128(); ROWS];
             for (r, a) in a.iter().enumerate().take(rows) {
                 let b = requant8(*a, _mm256_set1_epi32(offset[r]), _mm256_set1_ps(scale[r]), y, exact);
+                if positions_first.is_some() {
+                    bytes[r] = b;
+                    continue;
+                }
                 let at = out.add(r * plane + first);
                 if n == 8 {
                     _mm_storel_epi64(at.cast(), b);
@@ -490,6 +559,9 @@ pub(super) unsafe fn tiles_avx2_requant(words: &[u32], taps: &[usize], pairs: &[
                     let bytes = (_mm_cvtsi128_si64(b) as u64).to_le_bytes();
                     std::ptr::copy_nonoverlapping(bytes.as_ptr(), at, n);
                 }
+            }
+            if let Some(stride) = positions_first {
+                store_positions_first(&bytes, n, rows, out.add(first * stride), stride);
             }
         }
     }
