@@ -81,11 +81,11 @@ check() {
     "$host" compile --model "$work/nanotrack-model" --out "$work/nanotrack-plan"
     "$host" quantize --plan "$work/nanotrack-plan" --calib "$calib" --frames-per-seq 16 --method minmax \
         --budget 4 --min-macs 1000000 --min-out-channels 16 --out "$work/nanotrack-int8" >/dev/null
-    # Every plan is recorded with the runtime's own operators. The int8 plan's integer products
-    # run as PackedQConv here and as tract's kernels on aarch64 (there tract makes NanoTrack's
-    # layers channels-last, which PackedQConv does not take): the two requantise alike (the
-    # exact product for a scale shared by all channels, the f32 one per channel), so they give
-    # the same bytes. `PRL_OPS=tract-int8` records with tract's integer products instead.
+    # Every plan is recorded with the runtime's own operators. The int8 plan's integer layers
+    # run as PackedQConv on both sides (on aarch64 in the channels-last layouts tract gives
+    # NanoTrack's layers there), exact sums requantised alike, so they give the same bytes
+    # where the f32 layers between them do. `PRL_OPS=tract-int8` records with tract's integer
+    # products instead (they requantise as PackedQConv does).
     for p in prl-plan nanotrack-plan nanotrack-int8; do
         "$host" bench --plan "$work/$p" --runs 1 --top 0 --sequence "$golden/seq_drift" \
             --save-tensors "$work/$p-rec" >/dev/null

@@ -62,8 +62,7 @@ pub fn own_operators() -> bool {
 
 /// Whether the int8 convolutions and products are the runtime's own ([`PackedQConv`]): yes
 /// unless `PRL_OPS` is `tract` or `tract-int8` (the runtime's float operators, tract's integer
-/// products: the same bytes, since both requantise alike; to compare the two, or to record
-/// what aarch64 runs, where tract makes NanoTrack's layers channels-last and runs them itself).
+/// products: the same bytes, since both requantise alike; to compare the two).
 pub fn own_int8_operators() -> bool {
     static OWN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *OWN.get_or_init(|| {

@@ -204,17 +204,22 @@ impl PackedQConv {
         let input = unsafe { input.as_slice_unchecked::<u8>() };
         let src = if product.in_last { Src::Rows(input) } else { Src::Planes(input) };
         let requant = |o: usize, sums: &[i32], bytes: &mut [u8]| self.requant(path, o, sums, bytes);
-        // Tokens last out: positions first, written so by the x86 tiles (products are made on
-        // those paths only: [`products_here`]).
-        ensure!(
-            !product.out_last || matches!(path, WordsPath::Vnni | WordsPath::Avx2),
-            "PackedQConv: a product on the {path:?} path"
-        );
+        // Positions first out: written so by the x86 tiles; elsewhere (SDOT: NanoTrack's
+        // channels-last layers on aarch64) the channels' planes transposed after.
+        let tiles_transpose = matches!(path, WordsPath::Vnni | WordsPath::Avx2);
         let fill = |out: &mut [u8]| {
-            self.run_words(path, src, requant, out, product.out_last);
+            if !product.out_last || tiles_transpose {
+                self.run_words(path, src, requant, out, product.out_last);
+                return Ok(());
+            }
+            let (co, m) = (self.shape.co, self.shape.w);
+            let mut planes = vec![0u8; co * m];
+            self.run_words(path, src, requant, &mut planes, false);
+            par_chunks(out, TRANSPOSE_ROWS * co, |b, rows| transpose_block(&planes, m, b * TRANSPOSE_ROWS, rows));
             Ok(())
         };
-        // SAFETY: as in [`EvalOp::eval`]: every position of every channel is requantised.
+        // SAFETY: as in [`EvalOp::eval`]: every position of every channel is requantised (and,
+        // transposed, every row of the output written whole).
         let mut t = unsafe { output_tensor_written(&product.output, fill)? };
         // SAFETY: same storage type (u8), the output fact's quantisation parameters.
         unsafe { t.set_datum_type(self.out_dt) };
@@ -420,11 +425,64 @@ fn row_words(rows: &[u8], ci: usize, g: usize, bytes: &mut [u8], flip: u8) {
     if lo >= ci {
         return;
     }
+    if hi - lo == 4 {
+        // Whole words: each position's four bytes copied as one (byte by byte this took as
+        // many instructions as the products on NanoTrack's channels-last layers on aarch64).
+        let flip = u32::from_ne_bytes([flip; 4]);
+        for (row, word) in rows.chunks_exact(ci).zip(bytes.chunks_exact_mut(4)) {
+            let w = u32::from_ne_bytes(row[lo..hi].try_into().expect("four bytes")) ^ flip;
+            word.copy_from_slice(&w.to_ne_bytes());
+        }
+        return;
+    }
     for (p, row) in rows.chunks_exact(ci).enumerate() {
         for (c, &v) in row[lo..hi].iter().enumerate() {
             bytes[4 * p + c] = v ^ flip;
         }
     }
+}
+
+/// Positions a thread's share of a product's output transpose holds ([`transpose_block`]).
+const TRANSPOSE_ROWS: usize = 32;
+
+/// `rows[r][o] = planes[o][first + r]` for the output rows `rows` (each `co` long) of a product
+/// whose channels' planes of `m` positions are `planes`: one block of the transpose from
+/// channels first to positions first, in squares of 8 channels by 8 positions
+/// ([`transpose8x8`]; byte by byte it took as many instructions as the products on NanoTrack's
+/// channels-last layers on aarch64), the rest byte by byte.
+fn transpose_block(planes: &[u8], m: usize, first: usize, rows: &mut [u8]) {
+    let co = planes.len() / m;
+    let n = rows.len() / co;
+    let (whole_c, whole_p) = (co / 8 * 8, n / 8 * 8);
+    for o0 in (0..whole_c).step_by(8) {
+        for r0 in (0..whole_p).step_by(8) {
+            let at = |o: usize| first + r0 + (o0 + o) * m;
+            let square = std::array::from_fn(|o| u64::from_le_bytes(planes[at(o)..at(o) + 8].try_into().expect("8")));
+            for (r, v) in transpose8x8(square).into_iter().enumerate() {
+                rows[(r0 + r) * co + o0..][..8].copy_from_slice(&v.to_le_bytes());
+            }
+        }
+    }
+    for (r, row) in rows.chunks_exact_mut(co).enumerate() {
+        let channels = if r < whole_p { whole_c..co } else { 0..co };
+        for o in channels {
+            row[o] = planes[o * m + first + r];
+        }
+    }
+}
+
+/// The 8x8 byte matrix `a` (row `i`'s byte `j`: `a[i] >> 8j`) transposed, in three rounds of
+/// swaps of 1-, 2- and 4-byte blocks between rows.
+fn transpose8x8(mut a: [u64; 8]) -> [u64; 8] {
+    for (shift, mask) in [(8, 0x00FF_00FF_00FF_00FFu64), (16, 0x0000_FFFF_0000_FFFF), (32, 0x0000_0000_FFFF_FFFF)] {
+        let step = shift / 8;
+        for i in (0..8).filter(|i| i & step == 0) {
+            let t = ((a[i] >> shift) ^ a[i + step]) & mask;
+            a[i + step] ^= t;
+            a[i] ^= t << shift;
+        }
+    }
+    a
 }
 
 /// `words[x] = [rows[0][x], rows[1][x], rows[2][x], rows[3][x]] ^ flip` for every `x` of the
@@ -597,7 +655,8 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     }
     let facts = model.node_input_facts(node.id)?;
     let conv = conv_shape(node, &facts).map(|s| (s, Batch::Kept)).or_else(|| pointwise_shape(node, &facts));
-    let (shape, batch, matmul) = match (conv, matmul_shape(node, &facts)) {
+    let product = || matmul_shape(node, &facts).or_else(|| channels_last_shape(node, &facts));
+    let (shape, batch, matmul) = match (conv, product()) {
         (Some((shape, batch)), _) => (shape, batch, None),
         (None, Some((shape, product, io))) => (shape, Batch::None, Some((product, io))),
         (None, None) => return Ok(None),
@@ -717,6 +776,44 @@ fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape,
     };
     let &[co, wi] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
     (wi == ci).then_some((ConvShape { ci, h, w, co, kh: 1, kw: 1, pad: [0; 4], stride: 1 }, batch))
+}
+
+/// The shape of the quantised `EinSum` of a 1x1 convolution with its channels last on either
+/// side, as tract makes NanoTrack's pointwise layers on aarch64 (its declutter moves the
+/// depthwise layers' channels last there, and the pointwise ones between them follow):
+/// `HWI,OI,O->OHW`, `IHW,OI,O->HWO` or `HWI,OI,O->HWO` (whatever the letters), constant `[O, I]`
+/// weights and an i32 bias: a product of `K = I` channels over `M = H·W` positions, read as
+/// rows of channels where they are last and written so where they are last out.
+/// (`IHW,OI,O->OHW` is [`pointwise_shape`]'s.)
+fn channels_last_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Product, bool)> {
+    let (terms, out) = q_einsum_terms(node)?;
+    let [x, w, b, ..] = terms.as_slice() else { return None };
+    let (&[x0, x1, x2], &[o0, o1, o2], &[n, k]) = (x.as_slice(), out.as_slice(), w.as_slice()) else { return None };
+    let (in_last, out_last) = (x2 == k, o2 == n);
+    let (hw_in, hw_out) = (if in_last { [x0, x1] } else { [x1, x2] }, if out_last { [o0, o1] } else { [o1, o2] });
+    let fits = (in_last || x0 == k)
+        && (out_last || o0 == n)
+        && (in_last || out_last)
+        && hw_in == hw_out
+        && !hw_in.contains(&k)
+        && !hw_in.contains(&n)
+        && !out.contains(&k)
+        && !x.contains(&n)
+        && (b.is_empty() || b.as_slice() == [n])
+        && terms[3..].iter().all(|t| t.is_empty() || t.as_slice() == [n]);
+    if !fits || facts.get(2)?.datum_type != i32::datum_type() {
+        return None;
+    }
+    let input: TVec<usize> = facts.first()?.shape.as_concrete()?.into();
+    let output: TVec<usize> = node.outputs[0].fact.shape.as_concrete()?.into();
+    let (ci, positions) = if in_last { (input[2], input[0] * input[1]) } else { (input[0], input[1] * input[2]) };
+    let &[co, wi] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
+    let fits = wi == ci && positions > 0 && output.iter().product::<usize>() == co * positions;
+    fits.then_some((
+        ConvShape { ci, h: 1, w: positions, co, kh: 1, kw: 1, pad: [0; 4], stride: 1 },
+        Product { input, output, in_last, out_last },
+        false,
+    ))
 }
 
 /// The axis letters of a quantised `EinSum`'s input terms and of its output.
@@ -1074,8 +1171,8 @@ mod tests {
             // The product form (`akm,kn->mn`) has its channels second to last and the weights
             // `K x N` or `N x K`; the convolutions' have them third to last and `N x K`.
             let product = expr.ends_with("->mn") || expr.ends_with("->anm");
-            let ci = match (product, expr.starts_with("mk")) {
-                (true, true) => x_shape[x_shape.len() - 1],
+            let ci = match (product, expr.starts_with("mk") || expr.starts_with("HWI")) {
+                (_, true) => x_shape[x_shape.len() - 1],
                 (true, false) => x_shape[x_shape.len() - 2],
                 _ => x_shape[x_shape.len() - 3],
             };
@@ -1130,6 +1227,11 @@ mod tests {
         // NanoTrack's forms: the batch axis dropped (CHW), and dropped on the way out.
         run("IHW,OI,O,,,,,,->OHW", &[24, 32, 32], &[88, 24], 1);
         run("NIHW,OI,O,,,,,,->OHW", &[1, 16, 24, 20], &[16, 16], 1);
+        // Channels last on either side or both (NanoTrack's pointwise layers on aarch64, where
+        // tract moves the depthwise layers' channels last), on every words path.
+        run("HWI,OI,O,,,,,,->OHW", &[6, 7, 36], &[20, 36], 1);
+        run("IHW,OI,O,,,,,,->HWO", &[36, 6, 7], &[20, 36], 1);
+        run("HWI,OI,O,,,,,,->HWO", &[9, 13, 39], &[88, 39], 1);
         // Not a pointwise convolution (the weights' axes the other way round): left alone.
         run("NIHW,IO,O,,,,,,->NOHW", &[1, 24, 5, 7], &[24, 40], 0);
         run("IHW,IO,O,,,,,,->OHW", &[24, 5, 7], &[24, 40], 0);
@@ -1211,6 +1313,28 @@ mod tests {
             let (got, want) = unsafe { (got.as_slice_unchecked::<u8>(), want.as_slice_unchecked::<u8>()) };
             assert_eq!(got, want, "{expr}, scale {scale}");
             assert_eq!(got[0] as i32, 128 + exact, "{expr}, scale {scale}");
+        }
+    }
+
+    #[test]
+    fn a_product_s_transpose_puts_each_position_s_channels_in_a_row() {
+        let square: [u64; 8] = std::array::from_fn(|i| u64::from_le_bytes(std::array::from_fn(|j| (16 * i + j) as u8)));
+        let t = transpose8x8(square);
+        for (i, row) in t.iter().enumerate() {
+            assert_eq!(row.to_le_bytes(), std::array::from_fn(|j| (16 * j + i) as u8), "row {i}");
+        }
+        // 21 channels of 45 positions; the blocks from position 32 (13 rows: one square and
+        // five rows of bytes) and from 0 (32 rows).
+        let (co, m) = (21, 45);
+        let planes: Vec<u8> = (0..co * m).map(|i| (i * 7 % 251) as u8).collect();
+        for (first, n) in [(0, 32), (32, 13)] {
+            let mut rows = vec![0u8; n * co];
+            transpose_block(&planes, m, first, &mut rows);
+            for (r, row) in rows.chunks_exact(co).enumerate() {
+                for (o, &v) in row.iter().enumerate() {
+                    assert_eq!(v, planes[o * m + first + r], "position {}, channel {o}", first + r);
+                }
+            }
         }
     }
 
