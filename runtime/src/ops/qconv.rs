@@ -604,13 +604,14 @@ fn has_vnni_words() -> bool {
 }
 
 /// Whether HMG's linear layers run as [`PackedQConv`]s here ([`matmul_shape`]): on the AVX2
-/// words path, and on VNNI's unless tract's integer products run on AMX tiles (its
+/// and SDOT words paths, and on VNNI's unless tract's integer products run on AMX tiles (its
 /// `avx512amx_mmm_i32_16x16` took them in 2.35-2.41 ms per PRL-Track int8 step on one thread,
 /// 1.46-1.52 on two, against 3.0-3.1 and 1.83-1.85 on VNNI, 2026-12-06).
 fn products_here() -> bool {
     match words_path() {
         Some(WordsPath::Avx2) => true,
         Some(WordsPath::Vnni) => !tract_amx_int8(),
+        Some(WordsPath::Sdot) => true,
         _ => false,
     }
 }
@@ -834,10 +835,10 @@ fn q_einsum_terms(node: &TypedNode) -> Option<(Vec<Vec<char>>, Vec<char>)> {
 /// such products at 1.3 GOP/s on an AMD EPYC, 830 of a 1000 ms int8 step; on VNNI (AMX off)
 /// its `avx512vnni_mmm_i32_16x16` with its packing took 4.8 ms a step on one thread and 2.7
 /// on two, this form 2.8-2.9 and 1.7 (tokens-first rows read as words, the output written
-/// tokens first by the tiles: 2026-12-06). On SDOT tract's kernels serve them: this form was
-/// measured there (instructions counted under qemu, cycles modelled for a Cortex-A78,
-/// 2026-12-05, before those two changes) at 183 ms per PRL-Track int8 step against 178 with
-/// tract's `arm64simd_mmm_i32_8x8_dot`.
+/// tokens first by the tiles: 2026-12-06). On SDOT (instructions counted under qemu, cycles
+/// modelled for a Cortex-A78) this form took 183 ms per PRL-Track int8 step against 178 with
+/// tract's `arm64simd_mmm_i32_8x8_dot` on 2026-12-05, and 175.5 against 176.4 once the rows
+/// were read as words and the output transposed in 8x8-byte squares (2026-12-06).
 fn matmul_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Product, bool)> {
     if !products_here() {
         return None;
@@ -1239,7 +1240,7 @@ mod tests {
         // paths; and without the leading axis.
         let made = usize::from(products_here());
         if made == 0 {
-            eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 and VNNI words paths, VNNI's where tract's AMX kernels do not take the products (TRACT_CPU_ISA=-amx-int8 reaches it): NOT tested here");
+            eprintln!("NOTE: the product form of PackedQConv is made on the AVX2, SDOT and VNNI words paths, on VNNI's where tract's AMX kernels do not take the products (TRACT_CPU_ISA=-amx-int8 reaches it): NOT tested here");
         }
         run("akm,kn,n,,,,,,->mn", &[1, 48, 121], &[48, 72], made);
         run("km,nk,n,,,,,,->mn", &[36, 37], &[20, 36], made);
@@ -1278,7 +1279,7 @@ mod tests {
         let exact = biases[0] * Scaler::new(scale, RoundingPolicy::Even);
         let products = products_here();
         if !products {
-            eprintln!("NOTE: the product form of PackedQConv is made only on the AVX2 and VNNI words paths, VNNI's where tract's AMX kernels do not take the products (TRACT_CPU_ISA=-amx-int8 reaches it): its rounding is NOT tested here");
+            eprintln!("NOTE: the product form of PackedQConv is made on the AVX2, SDOT and VNNI words paths, on VNNI's where tract's AMX kernels do not take the products (TRACT_CPU_ISA=-amx-int8 reaches it): its rounding is NOT tested here");
         }
         let forms: [(&str, &[usize], bool); 2] =
             [("NIHW,OI,O,,,,,,->NOHW", &[1, 4, 3, 1], true), ("mk,kn,n,,,,,,->anm", &[3, 4], products)];
