@@ -1236,8 +1236,8 @@ mod tests {
         // Not a pointwise convolution (the weights' axes the other way round): left alone.
         run("NIHW,IO,O,,,,,,->NOHW", &[1, 24, 5, 7], &[24, 40], 0);
         run("IHW,IO,O,,,,,,->OHW", &[24, 5, 7], &[24, 40], 0);
-        // HMG's linear layers (`akm,kn->mn`, tokens out last), made only on the x86 words
-        // paths; and without the leading axis.
+        // HMG's linear layers (`akm,kn->mn`, tokens out last), made where `products_here`
+        // says; and without the leading axis.
         let made = usize::from(products_here());
         if made == 0 {
             eprintln!("NOTE: the product form of PackedQConv is made on the AVX2, SDOT and VNNI words paths, on VNNI's where tract's AMX kernels do not take the products (TRACT_CPU_ISA=-amx-int8 reaches it): NOT tested here");
