@@ -747,7 +747,7 @@ fn conv_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<ConvShape> {
 /// the way out.)
 fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Batch)> {
     let (terms, out) = q_einsum_terms(node)?;
-    let [x, w, b, ..] = terms.as_slice() else { return None };
+    let [x, w, _, ..] = terms.as_slice() else { return None };
     // NCHW, or CHW (a batch axis of 1 dropped, as in NanoTrack's graphs): `nihw,oi->nohw`.
     let batch = match (x.len(), out.len()) {
         (4, 4) if out[0] == x[0] => Batch::Kept,
@@ -760,14 +760,9 @@ fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape,
         Batch::Dropped => (1, 2, 1),
         Batch::None => (0, 1, 1),
     };
-    let pointwise = w.len() == 2
-        && out[ohw - 1] == w[0]
-        && out[ohw..] == x[hw..]
-        && w[1] == x[c]
-        && !out.contains(&x[c])
-        && (b.is_empty() || b.as_slice() == [w[0]])
-        && terms[3..].iter().all(|t| t.is_empty() || t.as_slice() == [w[0]]);
-    if !pointwise || facts.get(2)?.datum_type != i32::datum_type() {
+    let pointwise =
+        w.len() == 2 && out[ohw - 1] == w[0] && out[ohw..] == x[hw..] && w[1] == x[c] && !out.contains(&x[c]);
+    if !pointwise || !per_output_channel(&terms, w[0], facts) {
         return None;
     }
     let dims = facts.first()?.shape.as_concrete()?;
@@ -788,7 +783,7 @@ fn pointwise_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape,
 /// (`IHW,OI,O->OHW` is [`pointwise_shape`]'s.)
 fn channels_last_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Product, bool)> {
     let (terms, out) = q_einsum_terms(node)?;
-    let [x, w, b, ..] = terms.as_slice() else { return None };
+    let [x, w, _, ..] = terms.as_slice() else { return None };
     let (&[x0, x1, x2], &[o0, o1, o2], &[n, k]) = (x.as_slice(), out.as_slice(), w.as_slice()) else { return None };
     let (in_last, out_last) = (x2 == k, o2 == n);
     let (hw_in, hw_out) = (if in_last { [x0, x1] } else { [x1, x2] }, if out_last { [o0, o1] } else { [o1, o2] });
@@ -799,14 +794,11 @@ fn channels_last_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvSh
         && !hw_in.contains(&k)
         && !hw_in.contains(&n)
         && !out.contains(&k)
-        && !x.contains(&n)
-        && (b.is_empty() || b.as_slice() == [n])
-        && terms[3..].iter().all(|t| t.is_empty() || t.as_slice() == [n]);
-    if !fits || facts.get(2)?.datum_type != i32::datum_type() {
+        && !x.contains(&n);
+    if !fits || !per_output_channel(&terms, n, facts) {
         return None;
     }
-    let input: TVec<usize> = facts.first()?.shape.as_concrete()?.into();
-    let output: TVec<usize> = node.outputs[0].fact.shape.as_concrete()?.into();
+    let (input, output) = concrete_io(node, facts)?;
     let (ci, positions) = if in_last { (input[2], input[0] * input[1]) } else { (input[0], input[1] * input[2]) };
     let &[co, wi] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
     let fits = wi == ci && positions > 0 && output.iter().product::<usize>() == co * positions;
@@ -815,6 +807,18 @@ fn channels_last_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvSh
         Product { input, output, in_last, out_last },
         false,
     ))
+}
+
+/// Whether a quantised `EinSum`'s terms after the data and the weights (the bias, then the
+/// quantisation parameters) are each absent or per output channel (`n`), the bias i32.
+fn per_output_channel(terms: &[Vec<char>], n: char, facts: &[&TypedFact]) -> bool {
+    terms[2..].iter().all(|t| t.is_empty() || t.as_slice() == [n])
+        && facts.get(2).is_some_and(|f| f.datum_type == i32::datum_type())
+}
+
+/// The concrete shapes of a node's data input and of its output.
+fn concrete_io(node: &TypedNode, facts: &[&TypedFact]) -> Option<(TVec<usize>, TVec<usize>)> {
+    Some((facts.first()?.shape.as_concrete()?.into(), node.outputs[0].fact.shape.as_concrete()?.into()))
 }
 
 /// The axis letters of a quantised `EinSum`'s input terms and of its output.
@@ -844,7 +848,7 @@ fn matmul_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Pr
         return None;
     }
     let (terms, out) = q_einsum_terms(node)?;
-    let [x, w, b, ..] = terms.as_slice() else { return None };
+    let [x, w, _, ..] = terms.as_slice() else { return None };
     let (xr, or) = (x.len(), out.len());
     if !(2..=3).contains(&xr) || !(2..=3).contains(&or) || w.len() != 2 {
         return None;
@@ -859,14 +863,11 @@ fn matmul_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Pr
     let product = m != n
         && out[or - 2..] == if out_last { [m, n] } else { [n, m] }
         && (xr == 2 || lone(x[0]))
-        && (or == 2 || lone(out[0]))
-        && (b.is_empty() || b.as_slice() == [n])
-        && terms[3..].iter().all(|t| t.is_empty() || t.as_slice() == [n]);
-    if !product || facts.get(2)?.datum_type != i32::datum_type() {
+        && (or == 2 || lone(out[0]));
+    if !product || !per_output_channel(&terms, n, facts) {
         return None;
     }
-    let input: TVec<usize> = facts.first()?.shape.as_concrete()?.into();
-    let output: TVec<usize> = node.outputs[0].fact.shape.as_concrete()?.into();
+    let (input, output) = concrete_io(node, facts)?;
     let (ci, positions) = if in_last { (input[xr - 1], input[xr - 2]) } else { (input[xr - 2], input[xr - 1]) };
     let &[w0, w1] = facts.get(1)?.konst.as_ref()?.shape() else { return None };
     let (wk, co) = if io { (w0, w1) } else { (w1, w0) };
