@@ -131,7 +131,7 @@ fn plan_reproduces_the_golden_heads_and_the_onnx_graphs() {
     }
     assert_eq!(named("ChannelMaxPool").len(), 2, "the backbone's max pools");
     assert_eq!(named("LayerNormCore").len(), 4, "HMG's layer norms");
-    assert_eq!(named("RowSoftmax").len(), 6, "HMG's attention softmaxes");
+    assert_eq!(named("Attention").len(), 6, "HMG's attentions (scores, scale, softmax, mix)");
     let linear = named("ConstMatMul");
     for layer in ["blocks_0_attn_qkv", "blocks_0_mlp_fc1", "blocks_1_attn_qkv", "blocks_1_mlp_fc1", "patch_embed1"] {
         assert!(linear.iter().any(|n| n.contains(layer)), "{layer} in {linear:?}");

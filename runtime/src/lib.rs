@@ -53,7 +53,7 @@ pub use manifest::{
 };
 pub use nnef::nnef;
 pub use ops::{
-    accelerate, accelerate_with, own_operators, Accelerated, AttnMix, AttnScores, Binary, BroadcastBinary,
+    accelerate, accelerate_with, own_operators, Accelerated, Attention, AttnMix, AttnScores, Binary, BroadcastBinary,
     ChannelMaxPool, ConstMatMul, ConvShape, DepthwiseConv, DepthwiseConvHwc, DepthwiseXCorr, DequantizeU8,
     LayerNormCore, PackedConv, PackedQConv, Permute, PointwiseConv, QuantizeU8, RowSoftmax, SqueezeExcite,
     WinogradConv,

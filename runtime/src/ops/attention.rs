@@ -12,6 +12,7 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::einsum::EinSum;
 use tract_nnef::tract_core::ops::nn::{Softmax, SoftmaxKind};
 
+use super::softmax::softmax_row;
 use super::{output_tensor_written, par_chunks};
 
 /// `scores[a,m,b,n] = Σ_k q[0,a,m,k]·keys[b,a,n,k]` (`camk,bank->ambn`).
@@ -55,15 +56,7 @@ impl EvalOp for AttnScores {
         let out = unsafe {
             output_tensor_written(&[heads, m, b, n], |out: &mut [f32]| {
                 par_chunks(out, m * row, |a, out| {
-                    // This head's keys transposed: [k][(b, n)], so that the scores are `q · kt`.
-                    let mut kt = vec![0f32; p * ldk];
-                    for bi in 0..b {
-                        for j in 0..n {
-                            for k in 0..p {
-                                kt[k * ldk + bi * n + j] = ks[((bi * heads + a) * n + j) * p + k];
-                            }
-                        }
-                    }
+                    let kt = keys_transposed(ks, [b, heads, n, p], a, ldk);
                     gemm(out, row, &qs[a * m * p..(a + 1) * m * p], p, &kt, ldk);
                 });
                 Ok(())
@@ -93,18 +86,8 @@ impl EvalOp for AttnMix {
         // Per head [m][n], then laid out [m][a][n].
         let mut per_head = vec![0f32; heads * m * n];
         par_chunks(&mut per_head, m * n, |a, out| {
-            // This head's values as one [(b, k)][n] matrix.
-            let mut va = Vec::with_capacity(b * k * n);
-            for bi in 0..b {
-                va.extend_from_slice(&vs[(bi * heads + a) * k * n..(bi * heads + a + 1) * k * n]);
-            }
             let (rows, ld) = (b * k, n.next_multiple_of(NR));
-            if ld != n {
-                va = va
-                    .chunks_exact(n)
-                    .flat_map(|r| r.iter().copied().chain(std::iter::repeat_n(0.0, ld - n)))
-                    .collect();
-            }
+            let va = values_rows(vs, [b, heads, k, n], a, ld);
             gemm(out, n, &ps[a * m * rows..(a + 1) * m * rows], rows, &va, ld);
         });
         // SAFETY: the loops copy a value to every position `(mi·heads + a)·n + j`.
@@ -123,15 +106,43 @@ impl EvalOp for AttnMix {
     }
 }
 
+/// Head `a`'s keys (`keys` of shape `[b, heads, n, p]`) transposed: `p` rows of `ldk >= b·n`
+/// values, `[k][(b, n)]` then zeros, so that the scores are `q · kt`.
+pub(super) fn keys_transposed(keys: &[f32], [b, heads, n, p]: [usize; 4], a: usize, ldk: usize) -> Vec<f32> {
+    let mut kt = vec![0f32; p * ldk];
+    for bi in 0..b {
+        for j in 0..n {
+            for k in 0..p {
+                kt[k * ldk + bi * n + j] = keys[((bi * heads + a) * n + j) * p + k];
+            }
+        }
+    }
+    kt
+}
+
+/// Head `a`'s values (`values` of shape `[b, heads, k, n]`) as one `[(b, k)]` by `n` matrix,
+/// rows of `ld >= n` (zeros past `n`).
+pub(super) fn values_rows(values: &[f32], [b, heads, k, n]: [usize; 4], a: usize, ld: usize) -> Vec<f32> {
+    let mut va = Vec::with_capacity(b * k * ld);
+    for bi in 0..b {
+        let block = &values[(bi * heads + a) * k * n..(bi * heads + a + 1) * k * n];
+        for row in block.chunks_exact(n) {
+            va.extend_from_slice(row);
+            va.resize(va.len() + ld - n, 0.0);
+        }
+    }
+    va
+}
+
 /// Rows of `dst` computed together (accumulators: 6 x 16 lanes).
-const MR: usize = 6;
+pub(super) const MR: usize = 6;
 /// Columns of `dst` computed together.
-const NR: usize = 16;
+pub(super) const NR: usize = 16;
 
 /// `dst[i][j] = Σ_k a[i][k]·b[k][j]` for `j < n`: `a` is rows of `kl`, `b` is `kl` rows of
 /// `ldb` (a multiple of [`NR`], at least `n`, zero past `n`), `dst` rows of `n`. Sums in order
 /// of `k`.
-fn gemm(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
+pub(super) fn gemm(dst: &mut [f32], n: usize, a: &[f32], kl: usize, b: &[f32], ldb: usize) {
     match crate::isa::f32_kernel() {
         // SAFETY: the CPU has the features the function is compiled for (the table's needs).
         #[cfg(target_arch = "x86_64")]
@@ -257,161 +268,12 @@ impl EvalOp for RowSoftmax {
             let rows_per_task = (data.len() / row).div_ceil(8).max(1);
             par_chunks(data, rows_per_task * row, |_, chunk| {
                 for r in chunk.chunks_exact_mut(row) {
-                    softmax_row(r);
+                    softmax_row(r, None);
                 }
             });
         }
         Ok(tvec!(out.into_tvalue()))
     }
-}
-
-fn softmax_row(r: &mut [f32]) {
-    match crate::isa::f32_kernel() {
-        // SAFETY: the CPU has the features the function is compiled for (the table's needs).
-        #[cfg(target_arch = "x86_64")]
-        F32Kernel::Avx512 => unsafe { softmax_row_avx512(r) },
-        // SAFETY: as above.
-        #[cfg(target_arch = "x86_64")]
-        F32Kernel::Avx2Fma => unsafe { softmax_row_fma(r) },
-        // SAFETY: NEON is part of the aarch64 baseline (and the probe found it).
-        #[cfg(target_arch = "aarch64")]
-        F32Kernel::Neon => unsafe { softmax_row_neon(r) },
-        _ => softmax_row_generic(r),
-    }
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn softmax_row_fma(r: &mut [f32]) {
-    softmax_row_generic(r)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx2,fma")]
-unsafe fn softmax_row_avx512(r: &mut [f32]) {
-    softmax_row_generic(r)
-}
-
-/// [`softmax_row_generic`] in NEON intrinsics, bit for bit: the compiler leaves its max loop
-/// scalar (`fmaxnm` on single lanes) and its exponential four lanes at a time with one chain in
-/// flight. Here the max, the exponential and the sum go sixteen lanes at a time (four
-/// independent chains), the exponential and the sum in one pass; the same unfused operations
-/// in the same order, and the lanes reduced as the portable loop reduces them.
-#[cfg(target_arch = "aarch64")]
-#[target_feature(enable = "neon")]
-unsafe fn softmax_row_neon(r: &mut [f32]) {
-    use std::arch::aarch64::*;
-    const L: usize = 16;
-    let full = r.len() / L * L;
-    let p = r.as_mut_ptr();
-    // SAFETY (every block below): the loads and stores are at `i..i + 16` with `i + 16 <= full
-    // <= r.len()`.
-    let max = unsafe {
-        let mut m = [vdupq_n_f32(f32::NEG_INFINITY); 4];
-        for i in (0..full).step_by(L) {
-            for (k, m) in m.iter_mut().enumerate() {
-                *m = vmaxnmq_f32(*m, vld1q_f32(p.add(i + 4 * k)));
-            }
-        }
-        r[full..].iter().chain(&lanes16(m)).fold(f32::NEG_INFINITY, |m, &v| m.max(v))
-    };
-    /// Four registers' lanes in order, as the portable loop's sixteen.
-    #[inline(always)]
-    fn lanes16(v: [float32x4_t; 4]) -> [f32; 16] {
-        let mut lanes = [0f32; 16];
-        for (k, v) in v.iter().enumerate() {
-            // SAFETY: four floats into lanes 4k..4k + 4 of sixteen; NEON is baseline.
-            unsafe { vst1q_f32(lanes.as_mut_ptr().add(4 * k), *v) };
-        }
-        lanes
-    }
-    /// [`exp_nonpositive`] of `x - max` on four lanes, the same operations in the same order.
-    #[inline(always)]
-    unsafe fn exp4(x: float32x4_t, max: float32x4_t) -> float32x4_t {
-        let x = vmaxnmq_f32(vsubq_f32(x, max), vdupq_n_f32(EXP_MIN));
-        let n = vrndnq_f32(vmulq_n_f32(x, std::f32::consts::LOG2_E));
-        let r = vaddq_f32(vsubq_f32(x, vmulq_n_f32(n, LN2_HI)), vmulq_n_f32(n, LN2_LO));
-        let mut q = vmulq_n_f32(r, 1.0 / 720.0);
-        for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0] {
-            q = vmulq_f32(r, vaddq_f32(vdupq_n_f32(c), q));
-        }
-        let q = vaddq_f32(vdupq_n_f32(1.0), q);
-        let two_n = vreinterpretq_f32_s32(vshlq_n_s32::<23>(vaddq_s32(vcvtq_s32_f32(n), vdupq_n_s32(127))));
-        vmulq_f32(q, two_n)
-    }
-    let sum = unsafe {
-        let mv = vdupq_n_f32(max);
-        let mut s = [vdupq_n_f32(0.0); 4];
-        for i in (0..full).step_by(L) {
-            for (k, s) in s.iter_mut().enumerate() {
-                let e = exp4(vld1q_f32(p.add(i + 4 * k)), mv);
-                vst1q_f32(p.add(i + 4 * k), e);
-                *s = vaddq_f32(*s, e);
-            }
-        }
-        for v in &mut r[full..] {
-            *v = exp_nonpositive(*v - max);
-        }
-        let sum: f32 = lanes16(s).iter().chain(&r[full..]).sum();
-        sum
-    };
-    let inv = 1.0 / sum;
-    // SAFETY: as above.
-    unsafe {
-        for i in (0..full).step_by(L) {
-            for k in 0..4 {
-                vst1q_f32(p.add(i + 4 * k), vmulq_n_f32(vld1q_f32(p.add(i + 4 * k)), inv));
-            }
-        }
-    }
-    r[full..].iter_mut().for_each(|v| *v *= inv);
-}
-
-#[inline(always)]
-fn softmax_row_generic(r: &mut [f32]) {
-    // Sixteen lanes of max and sum, so that the loops vectorise.
-    const L: usize = 16;
-    let mut lanes = [f32::NEG_INFINITY; L];
-    let mut chunks = r.chunks_exact(L);
-    for c in &mut chunks {
-        for (m, &v) in lanes.iter_mut().zip(c) {
-            *m = m.max(v);
-        }
-    }
-    let max = chunks.remainder().iter().chain(&lanes).fold(f32::NEG_INFINITY, |m, &v| m.max(v));
-    for v in r.iter_mut() {
-        *v = exp_nonpositive(*v - max);
-    }
-    let mut sums = [0f32; L];
-    let mut chunks = r.chunks_exact(L);
-    for c in &mut chunks {
-        for (s, &v) in sums.iter_mut().zip(c) {
-            *s += v;
-        }
-    }
-    let sum: f32 = sums.iter().chain(chunks.remainder()).sum();
-    let inv = 1.0 / sum;
-    r.iter_mut().for_each(|v| *v *= inv);
-}
-
-/// Where [`exp_nonpositive`] clamps its input (`e^x` underflows f32 below it).
-const EXP_MIN: f32 = -87.0;
-/// ln 2 in two parts (Cephes): `LN2_HI − LN2_LO`, the first exact in a product by small `n`.
-const LN2_HI: f32 = 0.693_359_4;
-const LN2_LO: f32 = 2.121_944_4e-4;
-
-/// `e^x` for `x <= 0` (a softmax's shifted inputs): `2^n · p(r)` with `x = n·ln2 + r`,
-/// `|r| <= ln2/2`, `p` the degree-6 Taylor polynomial (relative error under 2e-7); 0 below
-/// -87 (where f32 underflows anyway).
-#[inline(always)]
-fn exp_nonpositive(x: f32) -> f32 {
-    let x = x.max(EXP_MIN);
-    let n = (x * std::f32::consts::LOG2_E).round_ties_even();
-    let r = x - n * LN2_HI + n * LN2_LO;
-    let p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
-    // SAFETY: `n` is a whole number in [-126, 0] (x is clamped), so the cast is exact.
-    let n = unsafe { n.to_int_unchecked::<i32>() };
-    p * f32::from_bits(((n + 127) as u32) << 23)
 }
 
 macro_rules! same_shape_typed_op {
@@ -560,32 +422,6 @@ mod tests {
                 false => gemm_generic::<false>(&mut want, n, &a, kl, &b, ldb),
             }
             assert!(got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()), "{m}x{n}x{kl}");
-        }
-    }
-
-    /// The dispatched softmax (NEON on aarch64) gives the portable loop's bits, on rows with
-    /// and without a remainder past the sixteen lanes and with inputs far enough below the
-    /// max to underflow.
-    #[test]
-    fn softmax_paths_equal_the_portable_loop() {
-        for n in [1usize, 3, 15, 16, 17, 40, 121, 242, 625] {
-            let mut row: Vec<f32> = values(n, n).iter().map(|v| v * 30.0).collect();
-            if n > 2 {
-                row[n / 2] = -200.0;
-            }
-            let (mut got, mut want) = (row.clone(), row);
-            softmax_row(&mut got);
-            softmax_row_generic(&mut want);
-            assert!(got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()), "row of {n}");
-        }
-    }
-
-    #[test]
-    fn exp_is_accurate_over_the_softmax_range() {
-        for i in 0..=8700 {
-            let x = -(i as f32) / 100.0;
-            let (got, want) = (exp_nonpositive(x), (x as f64).exp());
-            assert!(((got as f64 - want) / want).abs() < 5e-7, "exp({x}) = {got}, want {want}");
         }
     }
 }

@@ -3,7 +3,7 @@
 //! ([`DepthwiseXCorr`]), convolutions ([`PackedConv`], stride 1 or 2, and [`DepthwiseConv`] for
 //! depthwise ones with constant weights, and [`PackedQConv`] for int8
 //! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some, or aarch64's dot product), max pooling
-//! ([`ChannelMaxPool`]), pointwise convolutions with their bias and activation ([`PointwiseConv`]), HMG's attention ([`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
+//! ([`ChannelMaxPool`]), pointwise convolutions with their bias and activation ([`PointwiseConv`]), HMG's attention ([`Attention`], fused; or [`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
 //! norms ([`LayerNormCore`]), linear layers ([`ConstMatMul`]) and broadcast products and sums
 //! ([`BroadcastBinary`]), squeeze-excitation blocks ([`SqueezeExcite`]), and int8 plans' quantisation of activations
 //! and back ([`QuantizeU8`], [`DequantizeU8`]). Plans
@@ -12,6 +12,7 @@
 
 mod act;
 mod attention;
+mod attn_fused;
 mod binary;
 mod conv;
 mod conv_kernel;
@@ -29,11 +30,13 @@ mod qconv_kernel;
 mod qconv_lanes;
 mod quant;
 mod se;
+mod softmax;
 mod winograd;
 mod xcorr;
 mod xcorr_kernel;
 
 pub use attention::{AttnMix, AttnScores, RowSoftmax};
+pub use attn_fused::Attention;
 pub use binary::{Binary, BroadcastBinary};
 pub use conv::{ConvShape, PackedConv};
 pub use dwconv::DepthwiseConv;
@@ -85,7 +88,8 @@ pub struct Accelerated {
     pub pools: usize,
     /// Quantised (u8 x i8) convolutions made [`PackedQConv`].
     pub int8_convolutions: usize,
-    /// Attention products and softmaxes made [`AttnScores`], [`AttnMix`], [`RowSoftmax`].
+    /// Attentions (scores, scale, softmax and mix) made [`Attention`]; products and
+    /// softmaxes outside such a chain made [`AttnScores`], [`AttnMix`], [`RowSoftmax`].
     pub attention: usize,
     /// Layer norms (tract's centring and `RmsNorm`) made [`LayerNormCore`].
     pub norms: usize,
@@ -147,6 +151,10 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
             } else if let Some(op) = pool::channel_max_pool(model, node)? {
                 done.pools += 1;
                 (Box::new(op), tvec![node.inputs[0]])
+            } else if let Some((op, inputs, c)) = attn_fused::fused_attention(model, node)? {
+                done.attention += 1;
+                chain = c;
+                (Box::new(op), inputs)
             } else if let Some(op) = attention::attention_op(model, node)? {
                 done.attention += 1;
                 (op, node.inputs.iter().copied().collect())
@@ -400,7 +408,7 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         // Tiles over output positions without wide columns (small maps, AVX2).
         "PackedConv" if info.contains("compact tiles") => format!("{} compact", crate::isa::f32_kernel().name()),
         "PackedConv" | "DepthwiseConv" | "DepthwiseConvHwc" | "DepthwiseXCorr" | "ConstMatMul" | "PointwiseConv"
-        | "AttnScores" | "AttnMix" | "RowSoftmax" | "QuantizeU8" | "DequantizeU8" | "SqueezeExcite" => {
+        | "AttnScores" | "AttnMix" | "RowSoftmax" | "Attention" | "QuantizeU8" | "DequantizeU8" | "SqueezeExcite" => {
             crate::isa::f32_kernel().name().to_string()
         }
         // The form from the operator's info ("F(2x2, 3x3), ...").
