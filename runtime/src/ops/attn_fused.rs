@@ -128,10 +128,7 @@ type Fused = (Attention, TVec<OutletId>, Vec<usize>);
 /// the sole reader of the one before, reshapes, at most one multiply by a constant, the softmax
 /// over the last axis of rows of all the scores of a query, reshapes, and the mix's einsum
 /// (`ambk,bakn->man`) reading it as its first input.
-pub(crate) fn fused_attention(
-    model: &TypedModel,
-    node: &TypedNode,
-) -> TractResult<Option<Fused>> {
+pub(crate) fn fused_attention(model: &TypedModel, node: &TypedNode) -> TractResult<Option<Fused>> {
     let f32_concrete = |f: &TypedFact| f.datum_type == f32::datum_type() && f.shape.is_concrete();
     let einsum = |n: &TypedNode, axes: &str| -> TractResult<bool> {
         let facts = model.node_input_facts(n.id)?;

@@ -25,7 +25,8 @@ pub enum Binary {
 
 /// `out = act(full ∘ small)` (`∘` commutative) where `small` has the rank of `full` and each of
 /// its axes is either `full`'s or 1, and `act` the activation after it in the graph, if any
-/// (squeeze-excitation's scaling is followed by hard-swish in MobileNetV3).
+/// (squeeze-excitation's scaling is followed by hard-swish in MobileNetV3); or, `residual`,
+/// `out = full + full ∘ small`, the sum after it taken in (the regulators' gates `x + x·t`).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct BroadcastBinary {
     /// The operation.
@@ -33,14 +34,30 @@ pub struct BroadcastBinary {
     /// Which input has the output's shape (0 or 1).
     pub full: usize,
     act: Activation,
+    /// The output is `full` plus the operation's result.
+    residual: bool,
 }
 
 impl BroadcastBinary {
     /// The operation followed by the nodes of `tail` ([`super::act::tail`]), where they keep
     /// its output's shape.
     pub(crate) fn fused(&self, tail: &Tail, shape: &[usize]) -> Option<BroadcastBinary> {
-        (tail.bias.is_none() && tail.shape.as_slice() == shape)
+        (tail.bias.is_none() && tail.shape.as_slice() == shape && !self.residual)
             .then(|| BroadcastBinary { act: tail.act, ..self.clone() })
+    }
+
+    /// The operation of `node` with the `Add` after it that sums its result with its full
+    /// operand (`x + x·t`, in either order) taken in, and that `Add`'s node; none where
+    /// `node`'s output has other readers or the `Add` is something else.
+    pub(crate) fn with_residual(&self, model: &TypedModel, node: &TypedNode) -> Option<(BroadcastBinary, usize)> {
+        let add = super::act::sole_consumer(model, node)?;
+        let is_add = add.op_as::<TypedBinOp>().is_some_and(|b| b.0.is::<Add>());
+        let ours = OutletId::new(node.id, 0);
+        let full = node.inputs[self.full];
+        let pair = add.inputs[..] == [full, ours] || add.inputs[..] == [ours, full];
+        let same = model.outlet_fact(ours).ok()?.shape == add.outputs[0].fact.shape;
+        (is_add && pair && same && !self.residual && self.act == Activation::NONE)
+            .then(|| (BroadcastBinary { residual: true, ..self.clone() }, add.id))
     }
 }
 
@@ -50,7 +67,8 @@ impl Op for BroadcastBinary {
     }
 
     fn info(&self) -> TractResult<Vec<String>> {
-        Ok(vec![format!("{:?}, activation {}", self.op, self.act.describe())])
+        let residual = if self.residual { ", plus the full operand" } else { "" };
+        Ok(vec![format!("{:?}{residual}, activation {}", self.op, self.act.describe())])
     }
 
     op_as_typed_op!();
@@ -101,29 +119,58 @@ impl EvalOp for BroadcastBinary {
         let runs = runs(full.shape(), small.shape());
         let small = small.try_as_plain_ram()?;
         let small = small.as_slice::<f32>()?;
+        let (inner, inner_stride) = runs.last().copied().unwrap_or((1, 0));
+        let outer = &runs[..runs.len().saturating_sub(1)];
+        // Whole rows to a share, at least [`SHARE`] values (fewer stay on one thread).
+        let rows = SHARE.div_ceil(inner.max(1));
+        // Row `r` of the output (`full`'s row in it, or given as `src`).
+        let row = |r: usize, src: Option<&[f32]>, chunk: &mut [f32]| {
+            // The small operand's offset for this row (mixed radix over the outer runs).
+            let (mut rest, mut at) = (r, 0);
+            for &(len, stride) in outer.iter().rev() {
+                at += (rest % len) * stride;
+                rest /= len;
+            }
+            let f = |x: f32, s: f32| match self.op {
+                Binary::Mul => x * s,
+                Binary::Add => x + s,
+            };
+            match (src, inner_stride) {
+                (None, 0) => chunk.iter_mut().for_each(|v| *v = f(*v, small[at])),
+                (None, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, &s)| *v = f(*v, s)),
+                (Some(src), 0) => chunk.iter_mut().zip(src).for_each(|(v, &x)| *v = x + f(x, small[at])),
+                (Some(src), _) => {
+                    let pairs = src.iter().zip(&small[at..at + inner]);
+                    chunk.iter_mut().zip(pairs).for_each(|(v, (&x, &s))| *v = x + f(x, s))
+                }
+            }
+            self.act.apply_all(chunk);
+        };
+        if self.residual {
+            // A new tensor (`full` is read by the sum too: taking it would copy it whole on one
+            // thread).
+            let src = full.try_as_plain_ram()?;
+            let src = src.as_slice::<f32>()?;
+            let fill = |out: &mut [f32]| {
+                super::par_chunks(out, rows * inner.max(1), |c, share| {
+                    let src = &src[c * rows * inner.max(1)..][..share.len()];
+                    for (r, (chunk, src)) in share.chunks_exact_mut(inner).zip(src.chunks_exact(inner)).enumerate() {
+                        row(c * rows + r, Some(src), chunk);
+                    }
+                });
+                Ok(())
+            };
+            // SAFETY: the shares cover the output, each row of each share written whole.
+            let out = unsafe { super::output_tensor_written(full.shape(), fill)? };
+            return Ok(tvec!(out.into_tvalue()));
+        }
         let mut out = full.into_tensor();
         {
             let mut plain = out.try_as_plain_ram_mut()?;
             let data = plain.as_slice_mut::<f32>()?;
-            let (inner, inner_stride) = runs.last().copied().unwrap_or((1, 0));
-            let outer = &runs[..runs.len().saturating_sub(1)];
-            // Whole rows to a share, at least [`SHARE`] values (fewer stay on one thread).
-            let rows = SHARE.div_ceil(inner.max(1));
             super::par_chunks(data, rows * inner.max(1), |c, share| {
                 for (r, chunk) in share.chunks_exact_mut(inner).enumerate() {
-                    // The small operand's offset for this row (mixed radix over the outer runs).
-                    let (mut rest, mut at) = (c * rows + r, 0);
-                    for &(len, stride) in outer.iter().rev() {
-                        at += (rest % len) * stride;
-                        rest /= len;
-                    }
-                    match (self.op, inner_stride) {
-                        (Binary::Mul, 0) => chunk.iter_mut().for_each(|v| *v *= small[at]),
-                        (Binary::Add, 0) => chunk.iter_mut().for_each(|v| *v += small[at]),
-                        (Binary::Mul, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v *= s),
-                        (Binary::Add, _) => chunk.iter_mut().zip(&small[at..at + inner]).for_each(|(v, s)| *v += s),
-                    }
-                    self.act.apply_all(chunk);
+                    row(c * rows + r, None, chunk);
                 }
             });
         }
@@ -166,7 +213,7 @@ pub(crate) fn broadcast_binary(model: &TypedModel, node: &TypedNode) -> TractRes
         return Ok(None);
     };
     let outputs: usize = [a, b][full].iter().product();
-    Ok((outputs >= 4096).then_some(BroadcastBinary { op, full, act: Activation::NONE }))
+    Ok((outputs >= 4096).then_some(BroadcastBinary { op, full, act: Activation::NONE, residual: false }))
 }
 
 #[cfg(test)]
@@ -200,14 +247,33 @@ mod tests {
                 let inputs = tvec![x.clone().into_tvalue(), y.clone().into_tvalue()];
                 let want = tract_op.eval(&EvalContext::out_of_plan(), inputs).unwrap().remove(0);
                 let full = if a.iter().product::<usize>() >= b.iter().product() { 0 } else { 1 };
-                let ours = BroadcastBinary { op, full, act: Activation::NONE };
+                let ours = BroadcastBinary { op, full, act: Activation::NONE, residual: false };
                 let pool = tract_linalg::multithread::Executor::multithread(2);
                 let got = tract_linalg::multithread::multithread_tract_scope(pool, || {
-                    ours.eval(&EvalContext::out_of_plan(), tvec![x.into_tvalue(), y.into_tvalue()]).unwrap()
+                    ours.eval(&EvalContext::out_of_plan(), tvec![x.clone().into_tvalue(), y.clone().into_tvalue()])
+                        .unwrap()
                 });
                 assert_eq!(got[0].shape(), want.shape());
-                let (got, want) = (got[0].try_as_plain_ram().unwrap(), want.try_as_plain_ram().unwrap());
-                assert_eq!(got.as_slice::<f32>().unwrap(), want.as_slice::<f32>().unwrap(), "{op:?} {a:?} {b:?}");
+                let same = |got: &TValue, want: &TValue| {
+                    let (got, want) = (got.try_as_plain_ram().unwrap(), want.try_as_plain_ram().unwrap());
+                    assert_eq!(got.as_slice::<f32>().unwrap(), want.as_slice::<f32>().unwrap(), "{op:?} {a:?} {b:?}");
+                };
+                same(&got[0], &want);
+                // With the sum of the full operand and the result taken in (tract's `Add` after
+                // it as the reference), on one thread and on two.
+                let full_value = if full == 0 { &x } else { &y };
+                let add = tract_nnef::tract_core::ops::math::add();
+                let inputs = tvec![full_value.clone().into_tvalue(), want];
+                let want = add.eval(&EvalContext::out_of_plan(), inputs).unwrap().remove(0);
+                let ours = BroadcastBinary { residual: true, ..ours };
+                for threads in [1, 2] {
+                    let pool = tract_linalg::multithread::Executor::multithread(threads);
+                    let got = tract_linalg::multithread::multithread_tract_scope(pool, || {
+                        let inputs = tvec![x.clone().into_tvalue(), y.clone().into_tvalue()];
+                        ours.eval(&EvalContext::out_of_plan(), inputs).unwrap()
+                    });
+                    same(&got[0], &want);
+                }
             }
         }
     }

@@ -170,7 +170,13 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
                 (Box::new(op), tvec![x])
             } else if let Some(op) = binary::broadcast_binary(model, node)? {
                 done.broadcasts += 1;
-                let op = with_activation(model, node, op, BroadcastBinary::fused, &mut chain)?;
+                let op = match op.with_residual(model, node) {
+                    Some((op, add)) => {
+                        chain.push(add);
+                        op
+                    }
+                    None => with_activation(model, node, op, BroadcastBinary::fused, &mut chain)?,
+                };
                 (Box::new(op), node.inputs.iter().copied().collect())
             } else if let Some(op) = quant::quantize_u8(model, node)? {
                 done.quantizers += 1;
