@@ -48,7 +48,7 @@ impl EvalOp for AttnScores {
         };
         ensure!(kh == heads && kp == p, "AttnScores: q {:?}, keys {:?}", q.shape(), keys.shape());
         let (qs, ks) = (slice(&q)?, slice(&keys)?);
-        let row = b * n;
+        let (row, pieces) = (b * n, (0..b).collect::<Vec<_>>());
         // Key rows padded to whole vectors of 16.
         let ldk = row.next_multiple_of(NR);
         // SAFETY: the chunks of `m·row` cover the output, and `gemm` writes every value of
@@ -56,7 +56,7 @@ impl EvalOp for AttnScores {
         let out = unsafe {
             output_tensor_written(&[heads, m, b, n], |out: &mut [f32]| {
                 par_chunks(out, m * row, |a, out| {
-                    let kt = keys_transposed(ks, [b, heads, n, p], a, ldk);
+                    let kt = keys_transposed(ks, [heads, n, p], &pieces, a, ldk);
                     gemm(out, row, &qs[a * m * p..(a + 1) * m * p], p, &kt, ldk);
                 });
                 Ok(())
@@ -83,11 +83,12 @@ impl EvalOp for AttnMix {
         };
         ensure!((vb, vh, vk) == (b, heads, k), "AttnMix: probs {:?}, values {:?}", probs.shape(), values.shape());
         let (ps, vs) = (slice(&probs)?, slice(&values)?);
+        let pieces: Vec<usize> = (0..b).collect();
         // Per head [m][n], then laid out [m][a][n].
         let mut per_head = vec![0f32; heads * m * n];
         par_chunks(&mut per_head, m * n, |a, out| {
             let (rows, ld) = (b * k, n.next_multiple_of(NR));
-            let va = values_rows(vs, [b, heads, k, n], a, ld);
+            let va = values_rows(vs, [heads, k, n], &pieces, a, ld);
             gemm(out, n, &ps[a * m * rows..(a + 1) * m * rows], rows, &va, ld);
         });
         // SAFETY: the loops copy a value to every position `(mi·heads + a)·n + j`.
@@ -106,26 +107,39 @@ impl EvalOp for AttnMix {
     }
 }
 
-/// Head `a`'s keys (`keys` of shape `[b, heads, n, p]`) transposed: `p` rows of `ldk >= b·n`
-/// values, `[k][(b, n)]` then zeros, so that the scores are `q · kt`.
-pub(super) fn keys_transposed(keys: &[f32], [b, heads, n, p]: [usize; 4], a: usize, ldk: usize) -> Vec<f32> {
+/// Head `a`'s keys transposed: `p` rows of `ldk >= b·n` values, `[k][(b, n)]` then zeros, so
+/// that the scores are `q · kt`. Key set `bi` is slice `pieces[bi]` of `keys`' first axis
+/// (`keys` of shape `[_, heads, n, p]`; `b = pieces.len()`).
+pub(super) fn keys_transposed(
+    keys: &[f32],
+    [heads, n, p]: [usize; 3],
+    pieces: &[usize],
+    a: usize,
+    ldk: usize,
+) -> Vec<f32> {
     let mut kt = vec![0f32; p * ldk];
-    for bi in 0..b {
+    for (bi, &piece) in pieces.iter().enumerate() {
         for j in 0..n {
             for k in 0..p {
-                kt[k * ldk + bi * n + j] = keys[((bi * heads + a) * n + j) * p + k];
+                kt[k * ldk + bi * n + j] = keys[((piece * heads + a) * n + j) * p + k];
             }
         }
     }
     kt
 }
 
-/// Head `a`'s values (`values` of shape `[b, heads, k, n]`) as one `[(b, k)]` by `n` matrix,
-/// rows of `ld >= n` (zeros past `n`).
-pub(super) fn values_rows(values: &[f32], [b, heads, k, n]: [usize; 4], a: usize, ld: usize) -> Vec<f32> {
-    let mut va = Vec::with_capacity(b * k * ld);
-    for bi in 0..b {
-        let block = &values[(bi * heads + a) * k * n..(bi * heads + a + 1) * k * n];
+/// Head `a`'s values as one `[(b, k)]` by `n` matrix, rows of `ld >= n` (zeros past `n`). Value
+/// set `bi` is slice `pieces[bi]` of `values`' first axis (`values` of shape `[_, heads, k, n]`).
+pub(super) fn values_rows(
+    values: &[f32],
+    [heads, k, n]: [usize; 3],
+    pieces: &[usize],
+    a: usize,
+    ld: usize,
+) -> Vec<f32> {
+    let mut va = Vec::with_capacity(pieces.len() * k * ld);
+    for &piece in pieces {
+        let block = &values[(piece * heads + a) * k * n..(piece * heads + a + 1) * k * n];
         for row in block.chunks_exact(n) {
             va.extend_from_slice(row);
             va.resize(va.len() + ld - n, 0.0);

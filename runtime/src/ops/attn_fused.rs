@@ -9,6 +9,7 @@
 //! outputs are those of the separate operators bit for bit.
 
 use tract_nnef::internal::*;
+use tract_nnef::tract_core::ops::array::{Gather, Slice};
 use tract_nnef::tract_core::ops::binary::TypedBinOp;
 use tract_nnef::tract_core::ops::einsum::EinSum;
 use tract_nnef::tract_core::ops::math::Mul;
@@ -24,19 +25,31 @@ use super::{output_tensor_written, par_for, threads, SyncPtr};
 const BLOCK: usize = 4 * MR;
 
 /// `out[m,a,n] = Σ_{b,k} softmax_row(scale · scores)[a,m,b,k]·values[b,a,k,n]` with
-/// `scores[a,m,b,k] = Σ_j q[0,a,m,j]·keys[b,a,k,j]`: [`AttnScores`](super::AttnScores), the
+/// `scores[a,m,b,k] = Σ_j q[a,m,j]·keys[b,a,k,j]`: [`AttnScores`](super::AttnScores), the
 /// multiply by `scale` (when there is one), [`RowSoftmax`](super::RowSoftmax) over each row of
-/// `b·k` scores and [`AttnMix`](super::AttnMix), in one pass. Inputs `q` `[1, heads, m, p]`,
-/// `keys` `[b, heads, k, p]`, `values` `[b, heads, k, n]`.
+/// `b·k` scores and [`AttnMix`](super::AttnMix), in one pass.
+///
+/// Its three inputs hold the operands as slices of their first axis: `q` is slice `q_piece` of
+/// the first (`[_, heads, m, p]`), key set `bi` slice `key_pieces[bi]` of the second (`[_, heads,
+/// k, p]`), value set `bi` slice `value_pieces[bi]` of the third (`[_, heads, k, n]`). So the
+/// builder's slices and gathers of the tensor of all pieces (q3..v5) are read in place.
 #[derive(Debug, Clone, Default)]
 pub struct Attention {
     /// The constant the scores are multiplied by before the softmax.
     pub scale: Option<f32>,
+    /// Which slice of the first input is `q`.
+    pub q_piece: usize,
+    /// Which slices of the second input are the key sets.
+    pub key_pieces: TVec<usize>,
+    /// Which slices of the third input are the value sets (as many as key sets).
+    pub value_pieces: TVec<usize>,
 }
 
 impl PartialEq for Attention {
     fn eq(&self, other: &Self) -> bool {
         self.scale.map(f32::to_bits) == other.scale.map(f32::to_bits)
+            && (self.q_piece, &self.key_pieces, &self.value_pieces)
+                == (other.q_piece, &other.key_pieces, &other.value_pieces)
     }
 }
 
@@ -59,12 +72,23 @@ impl EvalOp for Attention {
 
     fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
         let (q, keys, values) = args_3!(inputs);
-        let bad = || format!("Attention: q {:?}, keys {:?}, values {:?}", q.shape(), keys.shape(), values.shape());
-        let (&[1, heads, m, p], &[b, kh, k, kp], &[vb, vh, vk, n]) = (q.shape(), keys.shape(), values.shape()) else {
+        let bad =
+            || format!("Attention {self:?}: q {:?}, keys {:?}, values {:?}", q.shape(), keys.shape(), values.shape());
+        let (&[pq, heads, m, p], &[pk, kh, k, kp], &[pv, vh, vk, n]) = (q.shape(), keys.shape(), values.shape()) else {
             bail!(bad())
         };
-        ensure!((kh, kp, vb, vh, vk) == (heads, p, b, heads, k) && p * b * k * n > 0, bad());
+        let b = self.key_pieces.len();
+        let in_range = |pieces: &[usize], len: usize| pieces.iter().all(|&i| i < len);
+        ensure!(
+            (kh, kp, vh, vk, self.value_pieces.len()) == (heads, p, heads, k, b)
+                && p * b * k * n > 0
+                && self.q_piece < pq
+                && in_range(&self.key_pieces, pk)
+                && in_range(&self.value_pieces, pv),
+            bad()
+        );
         let (qs, ks, vs) = (slice(&q)?, slice(&keys)?, slice(&values)?);
+        let qs = &qs[self.q_piece * heads * m * p..][..heads * m * p];
         let row = b * k;
         // Key rows and value rows padded to whole vectors of 16.
         let (ldk, ldv) = (row.next_multiple_of(NR), n.next_multiple_of(NR));
@@ -80,8 +104,8 @@ impl EvalOp for Attention {
                 if first >= last {
                     return;
                 }
-                let kt = keys_transposed(ks, [b, heads, k, p], a, ldk);
-                let va = values_rows(vs, [b, heads, k, n], a, ldv);
+                let kt = keys_transposed(ks, [heads, k, p], &self.key_pieces, a, ldk);
+                let va = values_rows(vs, [heads, k, n], &self.value_pieces, a, ldv);
                 let (mut scores, mut mixed) = (vec![0f32; BLOCK * row], vec![0f32; BLOCK * n]);
                 for r0 in (first..last).step_by(BLOCK) {
                     let rows = BLOCK.min(last - r0);
@@ -160,7 +184,11 @@ pub(crate) fn fused_attention(model: &TypedModel, node: &TypedNode) -> TractResu
                 return Ok(None);
             }
             chain.push(next.id);
-            return Ok(Some((Attention { scale }, tvec![node.inputs[0], node.inputs[1], next.inputs[1]], chain)));
+            let (q, q_pieces) = pieces_of(model, node.inputs[0], 1)?;
+            let (keys, key_pieces) = pieces_of(model, node.inputs[1], b)?;
+            let (values, value_pieces) = pieces_of(model, next.inputs[1], b)?;
+            let op = Attention { scale, q_piece: q_pieces[0], key_pieces, value_pieces };
+            return Ok(Some((op, tvec![q, keys, values], chain)));
         } else if reshape {
             // The same values in the same order.
         } else if let (false, None, Some(bin)) = (softmax, scale, next.op_as::<TypedBinOp>()) {
@@ -191,6 +219,46 @@ pub(crate) fn fused_attention(model: &TypedModel, node: &TypedNode) -> TractResu
     Ok(None)
 }
 
+/// `outlet` (`len` slices of an f32 value's first axis) as slices of another value: the input
+/// of the `Slice` of one index or the `Gather` of constant indices on axis 0 that makes it,
+/// and those indices; else `outlet` itself and `0..len`.
+fn pieces_of(model: &TypedModel, outlet: OutletId, len: usize) -> TractResult<(OutletId, TVec<usize>)> {
+    let node = model.node(outlet.node);
+    let own = (outlet, (0..len).collect());
+    let Some(&src) = node.inputs.first() else { return Ok(own) };
+    let fact = model.outlet_fact(src)?;
+    let Some(count) = fact.shape.as_concrete().filter(|s| s.len() == 4).map(|s| s[0]) else { return Ok(own) };
+    if fact.datum_type != f32::datum_type() {
+        return Ok(own);
+    }
+    if let Some(slice) = node.op_as::<Slice>() {
+        let (start, end) = (slice.start.to_usize().ok(), slice.end.to_usize().ok());
+        if let (0, Some(start), Some(end), 1) = (slice.axis, start, end, len) {
+            if end == start + 1 && end <= count {
+                return Ok((src, tvec![start]));
+            }
+        }
+    }
+    if node.op_as::<Gather>().is_some_and(|g| g.axis == 0 && g.output_type.is_none()) {
+        let indices = node.inputs.get(1).map(|&i| model.outlet_fact(i)).transpose()?.and_then(|f| f.konst.clone());
+        let indices = indices
+            .filter(|t| t.rank() == 1 && t.len() == len)
+            .and_then(|t| t.cast_to::<i64>().ok().map(|t| t.into_owned()));
+        if let Some(indices) = indices {
+            let picked: Option<TVec<usize>> = indices
+                .try_as_plain_ram()?
+                .as_slice::<i64>()?
+                .iter()
+                .map(|&i| usize::try_from(i).ok().filter(|&i| i < count))
+                .collect();
+            if let Some(picked) = picked {
+                return Ok((src, picked));
+            }
+        }
+    }
+    Ok(own)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -211,7 +279,8 @@ mod tests {
 
     /// The fused operator gives the separate operators' bits: rows not a multiple of the
     /// block or of the tile, value widths below and past a vector, with and without a scale,
-    /// on one thread and on tract's pool of three (heads split in parts of rows).
+    /// on one thread and on tract's pool of three (heads split in parts of rows), and with its
+    /// operands read as slices of larger tensors.
     #[test]
     fn equals_the_separate_operators_bit_for_bit() {
         for (heads, m, b, k, p, n, scale) in [
@@ -230,13 +299,29 @@ mod tests {
             let probs = run(&RowSoftmax, vec![Tensor::from_shape(&[heads, m, b * k], &scores).unwrap()]);
             let probs = probs.into_shape(&[heads, m, b, k]).unwrap();
             let want = floats(&run(&AttnMix, vec![probs, v.clone()]));
-            let op = Attention { scale };
+            let op = Attention { scale, q_piece: 0, key_pieces: (0..b).collect(), value_pieces: (0..b).collect() };
             let single = floats(&run(&op, vec![q.clone(), keys.clone(), v.clone()]));
             let pool = tract_linalg::multithread::Executor::multithread(3);
             let pooled = tract_linalg::multithread::multithread_tract_scope(pool, || {
                 floats(&run(&op, vec![q.clone(), keys.clone(), v.clone()]))
             });
-            for got in [single, pooled] {
+            // The operands as slices of one tensor of pieces (HMG's q3..v5): q piece 1 of a
+            // first input of 3, the key sets pieces 4, 0.. of 5, the value sets pieces 2.. of 6.
+            let (kp, vp): (TVec<usize>, TVec<usize>) = ((0..b).map(|i| (4 + i) % 5).collect(), (2..2 + b).collect());
+            let stack = |parts: usize, at: &[usize], t: &Tensor| {
+                let (len, v) = (t.len() / t.shape()[0], floats(t));
+                let mut all: Vec<f32> = values(parts * len, 9);
+                for (i, &piece) in at.iter().enumerate() {
+                    all[piece * len..(piece + 1) * len].copy_from_slice(&v[i * len..(i + 1) * len]);
+                }
+                let mut shape = t.shape().to_vec();
+                shape[0] = parts;
+                Tensor::from_shape(&shape, &all).unwrap()
+            };
+            let inputs = vec![stack(3, &[1], &q), stack(5, &kp, &keys), stack(6, &vp, &v)];
+            let sliced = Attention { scale, q_piece: 1, key_pieces: kp.clone(), value_pieces: vp.clone() };
+            let from_pieces = floats(&run(&sliced, inputs));
+            for got in [single, pooled, from_pieces] {
                 assert_eq!(got.len(), want.len());
                 let same = got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits());
                 assert!(same, "heads {heads}, m {m}, b {b}, k {k}, p {p}, n {n}");
