@@ -456,8 +456,9 @@ unsafe fn tile_avx2(base: *const i32, taps: &[usize], pairs: &[i32]) -> [std::ar
 ///
 /// # Safety
 /// The CPU has AVX-512F and VNNI; every tile's `PX` words from each tap are in `words`;
-/// `weights` holds `ROWS` words per tap; `p.out + r·p.plane + q` is writable for `r < p.rows`,
-/// `q < positions`.
+/// `weights` holds `ROWS` words per tap; for `r < p.rows`, `q < positions`, the byte of channel
+/// `r` at position `q` is writable: `p.out + r·p.plane + q` (planes), or with
+/// `p.positions_first = Some(stride)`, `p.out + q·stride + r` (rows of channels).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vnni")]
 pub(super) unsafe fn tiles_vnni_requant(words: &[u32], taps: &[usize], weights: &[i32], positions: usize, p: &Planes) {
