@@ -17,7 +17,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
 use super::conv_lanes::LanePack;
-use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits};
+use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits, serial_if_small};
 
 /// `dst = src` (equal lengths), 16 values at a time by fixed-size copies: a row of a small
 /// plane is too short for a library `memcpy` call to pay.
@@ -504,9 +504,10 @@ impl EvalOp for PackedConv {
                 Ok(())
             })
         };
+        let macs = [n, s.co, plane, ci, s.kh, s.kw].iter().fold(1usize, |a, &b| a.saturating_mul(b));
         // SAFETY: every output is written: the tiles cover every position of every row, each
         // channel block (or lanes' block) writes all its channels.
-        let out = unsafe { output_tensor_written(&[n, s.co, oh, ow], fill)? };
+        let out = serial_if_small(macs, || unsafe { output_tensor_written(&[n, s.co, oh, ow], fill) })?;
         Ok(tvec!(reshape_output(out, self.reshape.as_ref())?.into_tvalue()))
     }
 }

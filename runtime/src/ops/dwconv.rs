@@ -18,14 +18,10 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv::{ConstConv, ConvShape};
 use super::quant::{DequantizeU8, Planes};
-use super::{output_tensor_written, par_chunks, same_bits};
+use super::{output_tensor_written, par_chunks, same_bits, SERIAL_MACS};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
 const BLOCK: usize = 32;
-
-/// Layers with fewer multiply-adds run on the calling thread alone (about 50 µs of work:
-/// waking the pool's threads costs a good part of that).
-const SERIAL_MACS: usize = 1 << 20;
 
 /// `out[n,c,y,x] = bias[c] + Σ_{i,j} pad(input)[n,c,s·y+i,s·x+j]·weight[c,0,i,j]`, stride `s`
 /// 1 or 2, zero padding: a depthwise convolution with constant weights.

@@ -14,11 +14,8 @@ use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::conv::ConvShape;
-use super::{output_tensor, par_chunks, same_bits};
+use super::{output_tensor, par_chunks, same_bits, SERIAL_MACS};
 use crate::isa::F32Kernel;
-
-/// Layers with fewer multiply-adds run on the calling thread alone.
-const SERIAL_MACS: usize = 1 << 20;
 
 /// `out[y,x,c] = bias[c] + Σ_{i,j} pad(input)[s·y+i, s·x+j, c]·weight[c,0,i,j]` on `[h, w, c]`
 /// data, stride `s` 1 or 2, zero padding.

@@ -482,6 +482,23 @@ fn threads() -> usize {
     }
 }
 
+/// Multiply-adds under which an operator runs on the calling thread alone, even where its graph
+/// is split over threads: about 50 µs of work, of which handing it to the pool's threads costs a
+/// good part (PRL-Track's three head convolutions, 0.8 M each, took 0.045-0.064 ms on one thread
+/// and 0.053-0.076 over two).
+const SERIAL_MACS: usize = 1 << 20;
+
+/// `f` with tract's executor set to the calling thread alone where `macs` is under
+/// [`SERIAL_MACS`] (so that the operator's [`par_for`]s and [`par_chunks`] run inline), else `f`.
+fn serial_if_small<R>(macs: usize, f: impl FnOnce() -> R) -> R {
+    use tract_linalg::multithread::{multithread_tract_scope, Executor};
+    if macs < SERIAL_MACS {
+        multithread_tract_scope(Executor::SingleThread, f)
+    } else {
+        f()
+    }
+}
+
 /// Run `f(i)` for every `i < n`, on tract's thread pool when it has one.
 fn par_for(n: usize, f: impl Fn(usize) + Sync) {
     use rayon::prelude::*;

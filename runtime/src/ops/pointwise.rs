@@ -19,14 +19,12 @@ use tract_nnef::internal::*;
 
 use super::act::{tail, Activation, Tail};
 use super::matmul::{const_product, ConstProduct};
-use super::{output_tensor_written, par_for, same_bits, SyncPtr};
+use super::{output_tensor_written, par_for, same_bits, SyncPtr, SERIAL_MACS};
 
 /// Output channels per packed panel (rows of the register tile).
 const MR: usize = 6;
 /// Positions per register tile (four 16-lane vectors).
 const NB: usize = 64;
-/// Products under this many multiply-adds run on the calling thread.
-const SERIAL_MACS: usize = 1 << 20;
 
 /// `out(m, n) = act(bias(m) + Σ_k w(m, k) · x(k, n))` on `x` laid out `[k][n]` and `out`
 /// `[m][n]` (a 1x1 convolution of one image, channels first).
