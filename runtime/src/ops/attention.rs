@@ -48,7 +48,7 @@ impl EvalOp for AttnScores {
         };
         ensure!(kh == heads && kp == p, "AttnScores: q {:?}, keys {:?}", q.shape(), keys.shape());
         let (qs, ks) = (slice(&q)?, slice(&keys)?);
-        let (row, pieces) = (b * n, (0..b).collect::<Vec<_>>());
+        let (row, view) = (b * n, View::contiguous(0..b, [heads, n, p]));
         // Key rows padded to whole vectors of 16.
         let ldk = row.next_multiple_of(NR);
         // SAFETY: the chunks of `m·row` cover the output, and `gemm` writes every value of
@@ -56,7 +56,7 @@ impl EvalOp for AttnScores {
         let out = unsafe {
             output_tensor_written(&[heads, m, b, n], |out: &mut [f32]| {
                 par_chunks(out, m * row, |a, out| {
-                    let kt = keys_transposed(ks, [heads, n, p], &pieces, a, ldk);
+                    let kt = keys_transposed(ks, &view, [n, p], a, ldk);
                     gemm(out, row, &qs[a * m * p..(a + 1) * m * p], p, &kt, ldk);
                 });
                 Ok(())
@@ -83,12 +83,12 @@ impl EvalOp for AttnMix {
         };
         ensure!((vb, vh, vk) == (b, heads, k), "AttnMix: probs {:?}, values {:?}", probs.shape(), values.shape());
         let (ps, vs) = (slice(&probs)?, slice(&values)?);
-        let pieces: Vec<usize> = (0..b).collect();
+        let view = View::contiguous(0..b, [heads, k, n]);
         // Per head [m][n], then laid out [m][a][n].
         let mut per_head = vec![0f32; heads * m * n];
         par_chunks(&mut per_head, m * n, |a, out| {
             let (rows, ld) = (b * k, n.next_multiple_of(NR));
-            let va = values_rows(vs, [heads, k, n], &pieces, a, ld);
+            let va = values_rows(vs, &view, [k, n], a, ld);
             gemm(out, n, &ps[a * m * rows..(a + 1) * m * rows], rows, &va, ld);
         });
         // SAFETY: the loops copy a value to every position `(mi·heads + a)·n + j`.
@@ -107,41 +107,64 @@ impl EvalOp for AttnMix {
     }
 }
 
+/// Where an operand of an attention is in its input: row `t` of head `a` of piece `i` (its
+/// values consecutive) from `pieces[i] + a·head + t·token`. A contiguous `[_, heads, tokens,
+/// width]` tensor is one ([`View::contiguous`]); so is the `qkv` product before HMG's transposes.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct View {
+    /// Where each piece starts.
+    pub pieces: TVec<usize>,
+    /// From one head to the next.
+    pub head: usize,
+    /// From one row (token) to the next.
+    pub token: usize,
+}
+
+impl View {
+    /// Slices `pieces` of the first axis of a contiguous `[_, heads, tokens, width]` tensor.
+    pub fn contiguous(pieces: impl IntoIterator<Item = usize>, [heads, tokens, width]: [usize; 3]) -> View {
+        let piece = heads * tokens * width;
+        View { pieces: pieces.into_iter().map(|i| i * piece).collect(), head: tokens * width, token: width }
+    }
+
+    /// One past the last value read for `heads` heads of `tokens` rows of `width`; `None` on
+    /// overflow.
+    pub fn extent(&self, [heads, tokens, width]: [usize; 3]) -> Option<usize> {
+        let last = self
+            .head
+            .checked_mul(heads.checked_sub(1)?)?
+            .checked_add(self.token.checked_mul(tokens.checked_sub(1)?)?)?;
+        self.pieces.iter().map(|&p| p.checked_add(last)?.checked_add(width)).try_fold(0, |m, e| Some(m.max(e?)))
+    }
+
+    /// Where row `t` of head `a` of piece `i` starts.
+    pub fn row(&self, i: usize, a: usize, t: usize) -> usize {
+        self.pieces[i] + a * self.head + t * self.token
+    }
+}
+
 /// Head `a`'s keys transposed: `p` rows of `ldk >= b·n` values, `[k][(b, n)]` then zeros, so
-/// that the scores are `q · kt`. Key set `bi` is slice `pieces[bi]` of `keys`' first axis
-/// (`keys` of shape `[_, heads, n, p]`; `b = pieces.len()`).
-pub(super) fn keys_transposed(
-    keys: &[f32],
-    [heads, n, p]: [usize; 3],
-    pieces: &[usize],
-    a: usize,
-    ldk: usize,
-) -> Vec<f32> {
+/// that the scores are `q · kt`; key set `bi` is piece `bi` of `view` (`n` rows of `p`).
+pub(super) fn keys_transposed(keys: &[f32], view: &View, [n, p]: [usize; 2], a: usize, ldk: usize) -> Vec<f32> {
     let mut kt = vec![0f32; p * ldk];
-    for (bi, &piece) in pieces.iter().enumerate() {
+    for bi in 0..view.pieces.len() {
         for j in 0..n {
-            for k in 0..p {
-                kt[k * ldk + bi * n + j] = keys[((piece * heads + a) * n + j) * p + k];
+            let row = &keys[view.row(bi, a, j)..][..p];
+            for (k, &v) in row.iter().enumerate() {
+                kt[k * ldk + bi * n + j] = v;
             }
         }
     }
     kt
 }
 
-/// Head `a`'s values as one `[(b, k)]` by `n` matrix, rows of `ld >= n` (zeros past `n`). Value
-/// set `bi` is slice `pieces[bi]` of `values`' first axis (`values` of shape `[_, heads, k, n]`).
-pub(super) fn values_rows(
-    values: &[f32],
-    [heads, k, n]: [usize; 3],
-    pieces: &[usize],
-    a: usize,
-    ld: usize,
-) -> Vec<f32> {
-    let mut va = Vec::with_capacity(pieces.len() * k * ld);
-    for &piece in pieces {
-        let block = &values[(piece * heads + a) * k * n..(piece * heads + a + 1) * k * n];
-        for row in block.chunks_exact(n) {
-            va.extend_from_slice(row);
+/// Head `a`'s values as one `[(b, k)]` by `n` matrix, rows of `ld >= n` (zeros past `n`); value
+/// set `bi` is piece `bi` of `view` (`k` rows of `n`).
+pub(super) fn values_rows(values: &[f32], view: &View, [k, n]: [usize; 2], a: usize, ld: usize) -> Vec<f32> {
+    let mut va = Vec::with_capacity(view.pieces.len() * k * ld);
+    for bi in 0..view.pieces.len() {
+        for t in 0..k {
+            va.extend_from_slice(&values[view.row(bi, a, t)..][..n]);
             va.resize(va.len() + ld - n, 0.0);
         }
     }

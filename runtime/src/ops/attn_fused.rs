@@ -16,7 +16,8 @@ use tract_nnef::tract_core::ops::math::Mul;
 use tract_nnef::tract_core::ops::nn::{Softmax, SoftmaxKind};
 
 use super::act::{other_const, sole_consumer};
-use super::attention::{gemm, keys_transposed, values_rows, MR, NR};
+use super::attention::{gemm, keys_transposed, values_rows, View, MR, NR};
+use super::permute::Permute;
 use super::softmax::softmax_row;
 use super::{output_tensor_written, par_for, threads, SyncPtr};
 
@@ -29,27 +30,28 @@ const BLOCK: usize = 4 * MR;
 /// multiply by `scale` (when there is one), [`RowSoftmax`](super::RowSoftmax) over each row of
 /// `b·k` scores and [`AttnMix`](super::AttnMix), in one pass.
 ///
-/// Its three inputs hold the operands as slices of their first axis: `q` is slice `q_piece` of
-/// the first (`[_, heads, m, p]`), key set `bi` slice `key_pieces[bi]` of the second (`[_, heads,
-/// k, p]`), value set `bi` slice `value_pieces[bi]` of the third (`[_, heads, k, n]`). So the
-/// builder's slices and gathers of the tensor of all pieces (q3..v5) are read in place.
-#[derive(Debug, Clone, Default)]
+/// Its three inputs hold the operands where their [`View`]s say (`q` one piece of `m` rows of
+/// `p`, the key sets `b` pieces of `k` rows of `p`, the value sets `b` pieces of `k` rows of
+/// `n`, each of `heads` heads): so the builder's slices and gathers of the pieces q3..v5, and
+/// the transposes that make those pieces of the `qkv` product, are read in place.
+#[derive(Debug, Clone)]
 pub struct Attention {
     /// The constant the scores are multiplied by before the softmax.
     pub scale: Option<f32>,
-    /// Which slice of the first input is `q`.
-    pub q_piece: usize,
-    /// Which slices of the second input are the key sets.
-    pub key_pieces: TVec<usize>,
-    /// Which slices of the third input are the value sets (as many as key sets).
-    pub value_pieces: TVec<usize>,
+    /// `[heads, m, k, p, n]`.
+    pub shape: [usize; 5],
+    /// Where `q` is in the first input (one piece).
+    pub q: View,
+    /// Where the key sets are in the second input.
+    pub keys: View,
+    /// Where the value sets are in the third input (as many as key sets).
+    pub values: View,
 }
 
 impl PartialEq for Attention {
     fn eq(&self, other: &Self) -> bool {
         self.scale.map(f32::to_bits) == other.scale.map(f32::to_bits)
-            && (self.q_piece, &self.key_pieces, &self.value_pieces)
-                == (other.q_piece, &other.key_pieces, &other.value_pieces)
+            && (self.shape, &self.q, &self.keys, &self.values) == (other.shape, &other.q, &other.keys, &other.values)
     }
 }
 
@@ -72,23 +74,24 @@ impl EvalOp for Attention {
 
     fn eval(&self, _ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
         let (q, keys, values) = args_3!(inputs);
-        let bad =
-            || format!("Attention {self:?}: q {:?}, keys {:?}, values {:?}", q.shape(), keys.shape(), values.shape());
-        let (&[pq, heads, m, p], &[pk, kh, k, kp], &[pv, vh, vk, n]) = (q.shape(), keys.shape(), values.shape()) else {
-            bail!(bad())
-        };
-        let b = self.key_pieces.len();
-        let in_range = |pieces: &[usize], len: usize| pieces.iter().all(|&i| i < len);
-        ensure!(
-            (kh, kp, vh, vk, self.value_pieces.len()) == (heads, p, heads, k, b)
-                && p * b * k * n > 0
-                && self.q_piece < pq
-                && in_range(&self.key_pieces, pk)
-                && in_range(&self.value_pieces, pv),
-            bad()
-        );
+        let [heads, m, k, p, n] = self.shape;
         let (qs, ks, vs) = (slice(&q)?, slice(&keys)?, slice(&values)?);
-        let qs = &qs[self.q_piece * heads * m * p..][..heads * m * p];
+        let b = self.keys.pieces.len();
+        let fits = |view: &View, rows: usize, width: usize, len: usize| {
+            view.extent([heads, rows, width]).is_some_and(|e| e <= len)
+        };
+        ensure!(
+            self.q.pieces.len() == 1
+                && self.values.pieces.len() == b
+                && heads * m * p * b * k * n > 0
+                && fits(&self.q, m, p, qs.len())
+                && fits(&self.keys, k, p, ks.len())
+                && fits(&self.values, k, n, vs.len()),
+            "Attention {self:?}: inputs of {}, {} and {} values",
+            qs.len(),
+            ks.len(),
+            vs.len()
+        );
         let row = b * k;
         // Key rows and value rows padded to whole vectors of 16.
         let (ldk, ldv) = (row.next_multiple_of(NR), n.next_multiple_of(NR));
@@ -104,13 +107,23 @@ impl EvalOp for Attention {
                 if first >= last {
                     return;
                 }
-                let kt = keys_transposed(ks, [heads, k, p], &self.key_pieces, a, ldk);
-                let va = values_rows(vs, [heads, k, n], &self.value_pieces, a, ldv);
+                let kt = keys_transposed(ks, &self.keys, [k, p], a, ldk);
+                let va = values_rows(vs, &self.values, [k, n], a, ldv);
                 let (mut scores, mut mixed) = (vec![0f32; BLOCK * row], vec![0f32; BLOCK * n]);
+                let mut qrows = vec![0f32; BLOCK * p];
                 for r0 in (first..last).step_by(BLOCK) {
                     let rows = BLOCK.min(last - r0);
                     let (scores, mixed) = (&mut scores[..rows * row], &mut mixed[..rows * n]);
-                    gemm(scores, row, &qs[(a * m + r0) * p..(a * m + r0 + rows) * p], p, &kt, ldk);
+                    // The block's rows of q, in place where they are consecutive.
+                    let q = if self.q.token == p {
+                        &qs[self.q.row(0, a, r0)..][..rows * p]
+                    } else {
+                        for (r, dst) in qrows.chunks_exact_mut(p).take(rows).enumerate() {
+                            dst.copy_from_slice(&qs[self.q.row(0, a, r0 + r)..][..p]);
+                        }
+                        &qrows[..rows * p]
+                    };
+                    gemm(scores, row, q, p, &kt, ldk);
                     scores.chunks_exact_mut(row).for_each(|r| softmax_row(r, self.scale));
                     gemm(mixed, n, scores, row, &va, ldv);
                     for (r, values) in mixed.chunks_exact(n).enumerate() {
@@ -137,9 +150,9 @@ fn slice(v: &TValue) -> TractResult<&[f32]> {
 }
 
 impl TypedOp for Attention {
-    fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
-        let (q, v) = (&inputs[0].shape, &inputs[2].shape);
-        Ok(tvec!(f32::fact([q[2].clone(), q[1].clone(), v[3].clone()])))
+    fn output_facts(&self, _inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        let [heads, m, _, _, n] = self.shape;
+        Ok(tvec!(f32::fact([m, heads, n])))
     }
     as_op!();
 }
@@ -170,7 +183,7 @@ pub(crate) fn fused_attention(model: &TypedModel, node: &TypedNode) -> TractResu
     let facts = model.node_input_facts(node.id)?;
     let (q, keys) =
         (facts[0].shape.as_concrete().unwrap_or_default(), facts[1].shape.as_concrete().unwrap_or_default());
-    let (&[1, heads, m, _], &[b, _, k, _]) = (q, keys) else { return Ok(None) };
+    let (&[1, heads, m, _], &[b, _, k, p]) = (q, keys) else { return Ok(None) };
     let (mut chain, mut last, mut scale, mut softmax) = (vec![node.id], node, None, false);
     while let Some(next) = sole_consumer(model, last) {
         let from = OutletId::new(last.id, 0);
@@ -179,15 +192,19 @@ pub(crate) fn fused_attention(model: &TypedModel, node: &TypedNode) -> TractResu
             let facts = model.node_input_facts(next.id)?;
             let probs = facts[0].shape.as_concrete().unwrap_or_default();
             let values = facts[1].shape.as_concrete().unwrap_or_default();
-            let (&[ph, pm, pb, pk], &[vb, vh, vk, _]) = (probs, values) else { return Ok(None) };
+            let (&[ph, pm, pb, pk], &[vb, vh, vk, n]) = (probs, values) else { return Ok(None) };
             if (ph, pm, pb, pk, vb, vh, vk) != (heads, m, b, k, b, heads, k) {
                 return Ok(None);
             }
             chain.push(next.id);
-            let (q, q_pieces) = pieces_of(model, node.inputs[0], 1)?;
-            let (keys, key_pieces) = pieces_of(model, node.inputs[1], b)?;
-            let (values, value_pieces) = pieces_of(model, next.inputs[1], b)?;
-            let op = Attention { scale, q_piece: q_pieces[0], key_pieces, value_pieces };
+            let (Some((q, q_view)), Some((keys, keys_view)), Some((values, values_view))) = (
+                view_of(model, node.inputs[0], 1)?,
+                view_of(model, node.inputs[1], b)?,
+                view_of(model, next.inputs[1], b)?,
+            ) else {
+                return Ok(None);
+            };
+            let op = Attention { scale, shape: [heads, m, k, p, n], q: q_view, keys: keys_view, values: values_view };
             return Ok(Some((op, tvec![q, keys, values], chain)));
         } else if reshape {
             // The same values in the same order.
@@ -217,6 +234,57 @@ pub(crate) fn fused_attention(model: &TypedModel, node: &TypedNode) -> TractResu
         last = next;
     }
     Ok(None)
+}
+
+/// Where operand `outlet` (`len` pieces `[heads, tokens, width]`, f32) is read from: a tensor
+/// and the [`View`] of the operand in it. Through a `Slice` or `Gather` of the first axis
+/// ([`pieces_of`]), then through reshapes back to a [`Permute`] whose last three output axes
+/// are the pieces' `[heads, tokens, width]` (the width consecutive in its input): that
+/// `Permute`'s input (HMG's `qkv` product, before its transposes). Else the operand itself,
+/// contiguous.
+fn view_of(model: &TypedModel, outlet: OutletId, len: usize) -> TractResult<Option<(OutletId, View)>> {
+    let shape = model.outlet_fact(outlet)?.shape.as_concrete().map(<[usize]>::to_vec).unwrap_or_default();
+    let &[_, heads, tokens, width] = shape.as_slice() else { return Ok(None) };
+    let own = (outlet, View::contiguous(0..len, [heads, tokens, width]));
+    let (src, pieces) = pieces_of(model, outlet, len)?;
+    let mut at = src;
+    while let Some(AxisOp::Add(_) | AxisOp::Rm(_) | AxisOp::Reshape(..)) = model.node(at.node).op_as::<AxisOp>() {
+        at = model.node(at.node).inputs[0];
+    }
+    let node = model.node(at.node);
+    let (Some(permute), Some(input)) = (node.op_as::<Permute>(), node.inputs.first()) else {
+        return Ok(Some((src, View::contiguous(pieces, [heads, tokens, width]))));
+    };
+    let Some(dims) = model.outlet_fact(*input)?.shape.as_concrete().map(<[usize]>::to_vec) else {
+        return Ok(Some(own));
+    };
+    let perm = permute.perm();
+    let r = perm.len();
+    let strides: Vec<usize> = (0..dims.len()).map(|i| dims[i + 1..].iter().product()).collect();
+    let out: Vec<usize> = perm.iter().map(|&a| dims[a]).collect();
+    let src_count = model.outlet_fact(src)?.shape.as_concrete().map_or(0, |s| s[0]);
+    if r < 3
+        || out[r - 3..] != [heads, tokens, width]
+        || out[..r - 3].iter().product::<usize>() != src_count
+        || strides[perm[r - 1]] != 1
+    {
+        return Ok(Some((src, View::contiguous(pieces, [heads, tokens, width]))));
+    }
+    // Piece i: its index over the leading output axes (row-major), each axis's input stride.
+    let start = |mut i: usize| {
+        let mut off = 0;
+        for a in (0..r - 3).rev() {
+            off += (i % out[a]) * strides[perm[a]];
+            i /= out[a];
+        }
+        off
+    };
+    let view = View {
+        pieces: pieces.iter().map(|&i| start(i)).collect(),
+        head: strides[perm[r - 3]],
+        token: strides[perm[r - 2]],
+    };
+    Ok(Some((*input, view)))
 }
 
 /// `outlet` (`len` slices of an f32 value's first axis) as slices of another value: the input
@@ -286,6 +354,7 @@ mod tests {
         for (heads, m, b, k, p, n, scale) in [
             (3, 5, 2, 7, 16, 16, Some(0.25f32)),
             (2, 121, 2, 121, 16, 16, Some(0.144_337_56)),
+            (3, 13, 2, 13, 8, 8, None),
             (5, 31, 1, 40, 8, 20, None),
             (1, 1, 3, 3, 4, 3, Some(3.0)),
         ] {
@@ -299,7 +368,13 @@ mod tests {
             let probs = run(&RowSoftmax, vec![Tensor::from_shape(&[heads, m, b * k], &scores).unwrap()]);
             let probs = probs.into_shape(&[heads, m, b, k]).unwrap();
             let want = floats(&run(&AttnMix, vec![probs, v.clone()]));
-            let op = Attention { scale, q_piece: 0, key_pieces: (0..b).collect(), value_pieces: (0..b).collect() };
+            let op = Attention {
+                scale,
+                shape: [heads, m, k, p, n],
+                q: View::contiguous([0], [heads, m, p]),
+                keys: View::contiguous(0..b, [heads, k, p]),
+                values: View::contiguous(0..b, [heads, k, n]),
+            };
             let single = floats(&run(&op, vec![q.clone(), keys.clone(), v.clone()]));
             let pool = tract_linalg::multithread::Executor::multithread(3);
             let pooled = tract_linalg::multithread::multithread_tract_scope(pool, || {
@@ -319,8 +394,50 @@ mod tests {
                 Tensor::from_shape(&shape, &all).unwrap()
             };
             let inputs = vec![stack(3, &[1], &q), stack(5, &kp, &keys), stack(6, &vp, &v)];
-            let sliced = Attention { scale, q_piece: 1, key_pieces: kp.clone(), value_pieces: vp.clone() };
+            let sliced = Attention {
+                q: View::contiguous([1], [heads, m, p]),
+                keys: View::contiguous(kp.iter().copied(), [heads, k, p]),
+                values: View::contiguous(vp.iter().copied(), [heads, k, n]),
+                ..op.clone()
+            };
             let from_pieces = floats(&run(&sliced, inputs));
+            // And read from HMG's `qkv` layout before its transposes: `[k, 3, heads, 3, p]`
+            // (tokens, q/k/v, heads, part, width), piece `3·s + part` at `s·heads·3·p +
+            // part·p`, heads `3·p` apart, tokens `9·heads·p` (q, keys and values of width p).
+            if m == k && n == p && b == 2 {
+                let qkv = values(k * 9 * heads * p, 11);
+                let piece = |i: usize| -> Vec<f32> {
+                    let mut out = vec![];
+                    for a in 0..heads {
+                        for t in 0..k {
+                            let at = t * 9 * heads * p + (i / 3) * heads * 3 * p + a * 3 * p + (i % 3) * p;
+                            out.extend_from_slice(&qkv[at..at + p]);
+                        }
+                    }
+                    out
+                };
+                let t = |pieces: &[usize]| {
+                    let v: Vec<f32> = pieces.iter().flat_map(|&i| piece(i)).collect();
+                    Tensor::from_shape(&[pieces.len(), heads, k, p], &v).unwrap()
+                };
+                let probs = {
+                    let mut sc = floats(&run(&AttnScores, vec![t(&[1]), t(&[3, 4])]));
+                    if let Some(s) = scale {
+                        sc.iter_mut().for_each(|x| *x *= s);
+                    }
+                    run(&RowSoftmax, vec![Tensor::from_shape(&[heads, m, b * k], &sc).unwrap()])
+                };
+                let want = floats(&run(&AttnMix, vec![probs.into_shape(&[heads, m, b, k]).unwrap(), t(&[6, 7])]));
+                let view = |pieces: &[usize]| View {
+                    pieces: pieces.iter().map(|&i| (i / 3) * heads * 3 * p + (i % 3) * p).collect(),
+                    head: 3 * p,
+                    token: 9 * heads * p,
+                };
+                let strided = Attention { q: view(&[1]), keys: view(&[3, 4]), values: view(&[6, 7]), ..op.clone() };
+                let qkv = Tensor::from_shape(&[k, 3, heads, 3, p], &qkv).unwrap();
+                let got = floats(&run(&strided, vec![qkv.clone(), qkv.clone(), qkv]));
+                assert!(got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()), "qkv layout, heads {heads}");
+            }
             for got in [single, pooled, from_pieces] {
                 assert_eq!(got.len(), want.len());
                 let same = got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits());

@@ -22,6 +22,11 @@ pub struct Permute {
 }
 
 impl Permute {
+    /// Output axis `a` is input axis `perm()[a]`.
+    pub(super) fn perm(&self) -> &[usize] {
+        &self.perm
+    }
+
     /// The copy of `input_shape` by `perm`: the output's lengths, and as few (length, source
     /// stride) axes as describe it (axes of length 1 dropped, axes consecutive in both the
     /// output and the input merged; at least one).
