@@ -187,6 +187,18 @@ pub(super) fn sole_consumer<'m>(model: &'m TypedModel, node: &TypedNode) -> Opti
     }
 }
 
+/// Whether `op` on a value of `shape` leaves its values in the same order: a reshape, a unit
+/// axis added or removed, or a move that crosses only axes of length 1 (a transpose does not).
+pub(super) fn keeps_order(op: &AxisOp, shape: &[usize]) -> bool {
+    match *op {
+        AxisOp::Move(from, to) => {
+            let unit = |a: usize| shape.get(a) == Some(&1);
+            unit(from) || (from.min(to)..=from.max(to)).filter(|&a| a != from).all(unit)
+        }
+        AxisOp::Add(_) | AxisOp::Rm(_) | AxisOp::Reshape(..) => true,
+    }
+}
+
 /// The constant other input of a binary `node` whose other input is `from`.
 pub(super) fn other_const(model: &TypedModel, node: &TypedNode, from: OutletId) -> Option<Arc<Tensor>> {
     let [a, b] = node.inputs[..] else { return None };
@@ -232,8 +244,12 @@ pub(crate) fn tail(
         let bin = next.op_as::<TypedBinOp>();
         if act.hard_swish {
             break;
-        } else if next.op_as::<AxisOp>().is_some() {
-            // A reshape: the same values in the same order.
+        } else if let Some(axes) = next.op_as::<AxisOp>() {
+            // A reshape: the same values in the same order (a transpose is not taken in).
+            let shape: &TVec<usize> = shapes.last().expect("non-empty");
+            if !keeps_order(axes, shape) {
+                break;
+            }
         } else if let (Some((m, n)), None, true) = (bias_for, &bias, bin.is_some_and(|b| b.0.is::<Add>())) {
             if act != Activation::NONE {
                 break;
@@ -349,6 +365,26 @@ mod tests {
             model.wire_node("max", max(), &[y, lo]).unwrap()[0]
         };
         check(24, 24, 24, crossed, 4);
+    }
+
+    #[test]
+    fn a_transpose_before_the_activation_ends_the_tail() {
+        // Channels moved last, then ReLU: the values change order, so the ReLU stays tract's
+        // (taken in, the output would be the untransposed values in the transposed shape).
+        let moved = |axes: AxisOp| {
+            move |model: &mut TypedModel, y: OutletId| {
+                let y = model.wire_node("move", axes.clone(), &[y]).unwrap()[0];
+                let lo = konst(model, "lo", 0.0, 4);
+                model.wire_node("max", max(), &[y, lo]).unwrap()[0]
+            }
+        };
+        // Removed: the weights and the bias only.
+        check(3, 16, 1, moved(AxisOp::Move(1, 3)), 2);
+        check(24, 24, 24, moved(AxisOp::Move(1, 3)), 2);
+        // The batch axis (length 1) moved: the same order, taken in (and the move, the bound
+        // and the ReLU removed).
+        check(3, 16, 1, moved(AxisOp::Move(0, 2)), 5);
+        check(24, 24, 24, moved(AxisOp::Move(0, 2)), 5);
     }
 
     #[test]
