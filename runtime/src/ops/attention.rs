@@ -359,15 +359,17 @@ pub(crate) fn attention_op(model: &TypedModel, node: &TypedNode) -> TractResult<
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
-    fn run(op: &dyn EvalOp, inputs: Vec<Tensor>) -> Tensor {
+    /// `op`'s first output on `inputs` (also the fused attention's and the softmax's tests').
+    pub(in crate::ops) fn run(op: &dyn EvalOp, inputs: Vec<Tensor>) -> Tensor {
         let inputs = inputs.into_iter().map(|t| t.into_tvalue()).collect();
         op.eval(&EvalContext::out_of_plan(), inputs).unwrap().remove(0).into_tensor()
     }
 
-    fn values(n: usize, seed: usize) -> Vec<f32> {
+    /// `n` values in [-2, 2), a spread that depends on `seed`.
+    pub(in crate::ops) fn values(n: usize, seed: usize) -> Vec<f32> {
         (0..n).map(|i| (((i + seed) * 7919 % 1000) as f32) / 250.0 - 2.0).collect()
     }
 

@@ -330,16 +330,8 @@ fn pieces_of(model: &TypedModel, outlet: OutletId, len: usize) -> TractResult<(O
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ops::attention::tests::{run, values};
     use crate::ops::{AttnMix, AttnScores, RowSoftmax};
-
-    fn run(op: &dyn EvalOp, inputs: Vec<Tensor>) -> Tensor {
-        let inputs = inputs.into_iter().map(|t| t.into_tvalue()).collect();
-        op.eval(&EvalContext::out_of_plan(), inputs).unwrap().remove(0).into_tensor()
-    }
-
-    fn values(n: usize, seed: usize) -> Vec<f32> {
-        (0..n).map(|i| (((i + seed) * 7919 % 1000) as f32) / 250.0 - 2.0).collect()
-    }
 
     fn floats(t: &Tensor) -> Vec<f32> {
         t.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().to_vec()

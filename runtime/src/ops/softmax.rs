@@ -314,10 +314,7 @@ fn exp_nonpositive(x: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn values(n: usize, seed: usize) -> Vec<f32> {
-        (0..n).map(|i| (((i + seed) * 7919 % 1000) as f32) / 250.0 - 2.0).collect()
-    }
+    use crate::ops::attention::tests::values;
 
     /// The dispatched softmax (the path the machine runs: AVX-512, AVX2 or NEON) gives the
     /// portable loop's bits, on rows with and without a remainder past the sixteen lanes, with
