@@ -79,10 +79,15 @@ pub(crate) fn semantic_regulator(
     act_scale: f32,
 ) -> Result<Value> {
     let n = |s: &str| format!("{name}.{s}");
-    let t = upsample_nearest(g, &n("upsample"), t, 11, 21)?;
+    // The official code upsamples `t` (192 channels) to 21x21, then applies the 1x1 `conv1`
+    // (192 -> 1). A 1x1 convolution commutes with nearest upsampling (each output is the same
+    // sum over the same input pixel's channels), so the convolution runs first on the 11x11
+    // map and only its one channel is upsampled: the same values, 3.6x fewer multiply-adds and
+    // 1/192 of the gathers (192-channel gathers ran on one thread, 0.15 ms of a step).
     let spec =
         ConvSpec { conv: w.pp("conv1"), cin: WIDTH, cout: 1, k: 1, opts: ConvOpts::default(), bias: true, gain: 1.0 };
-    let t = conv(g, &n("conv1"), &t, &spec)?;
+    let t = conv(g, &n("conv1"), t, &spec)?;
+    let t = upsample_nearest(g, &n("upsample"), &t, 11, 21)?;
     let special = g.mul(&n("special"), x, &t)?;
     let x = g.add(&n("gated"), x, &special)?;
     let spec = ConvSpec {
