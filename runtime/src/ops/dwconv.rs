@@ -8,7 +8,9 @@
 //! consecutive inputs) and every output row is the sum over taps of a weight times a shifted
 //! input row; channels are spread over tract's thread pool. In int8 plans a convolution whose
 //! input is dequantised for it alone reads the u8 data and dequantises each plane on its way
-//! into the padded plane ([`DepthwiseConv::reading`]).
+//! into the padded plane ([`DepthwiseConv::reading`]); one whose output only a quantiser reads
+//! writes the quantiser's bytes itself, each plane quantised while in the cache
+//! ([`DepthwiseConv::writing`]).
 
 use std::sync::Arc;
 
@@ -17,7 +19,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv::{ConstConv, ConvShape};
-use super::quant::{DequantizeU8, Planes};
+use super::quant::{DequantizeU8, Planes, QuantizeU8};
 use super::{output_tensor_written, par_chunks, same_bits, SERIAL_MACS};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
@@ -43,6 +45,8 @@ pub struct DepthwiseConv {
     reshape: Option<TVec<usize>>,
     /// The input is u8, dequantised by this (and its activation) plane by plane ([`Self::reading`]).
     dequant: Option<DequantizeU8>,
+    /// The output is u8, each plane quantised by this as it is written ([`Self::writing`]).
+    quant: Option<QuantizeU8>,
 }
 
 impl std::fmt::Debug for DepthwiseConv {
@@ -60,6 +64,7 @@ impl PartialEq for DepthwiseConv {
             && self.act == other.act
             && self.reshape == other.reshape
             && self.dequant == other.dequant
+            && self.quant == other.quant
     }
 }
 
@@ -80,7 +85,18 @@ impl DepthwiseConv {
             shape.pad_plane(&vec![0.0; shape.h * shape.w], buf)
         }));
         let act = Activation::NONE;
-        Ok(DepthwiseConv { shape, batch, offsets, weights, bias, act, borders, reshape: None, dequant: None })
+        Ok(DepthwiseConv {
+            shape,
+            batch,
+            offsets,
+            weights,
+            bias,
+            act,
+            borders,
+            reshape: None,
+            dequant: None,
+            quant: None,
+        })
     }
 
     /// The length of the scratch plane: the padded input (its phases with stride 2), with room
@@ -104,6 +120,14 @@ impl DepthwiseConv {
     /// through memory.
     pub(crate) fn reading(self, dequant: DequantizeU8) -> DepthwiseConv {
         DepthwiseConv { dequant: Some(dequant), ..self }
+    }
+
+    /// The convolution followed by `quant`: each output plane (after the activation) quantised
+    /// to u8 while it is in the thread's cache, the bytes `quant` would have written from the
+    /// f32 tensor. NanoTrack's int8 plan has 14 such pairs (the depthwise layers before an
+    /// integer pointwise one without a squeeze-excitation between).
+    pub(crate) fn writing(self, quant: QuantizeU8) -> DepthwiseConv {
+        DepthwiseConv { quant: Some(quant), ..self }
     }
 
     /// A zeroed scratch plane for [`Self::channel`] ([`Self::scratch_len`] long; the operator
@@ -322,14 +346,15 @@ impl Op for DepthwiseConv {
     fn info(&self) -> TractResult<Vec<String>> {
         let s = &self.shape;
         Ok(vec![format!(
-            "{}x{} kernel, stride {}, {} channels, pad {:?}, activation {}{}",
+            "{}x{} kernel, stride {}, {} channels, pad {:?}, activation {}{}{}",
             s.kh,
             s.kw,
             s.stride,
             s.ci,
             s.pad,
             self.act.describe(),
-            if self.dequant.is_some() { ", u8 input dequantised" } else { "" }
+            if self.dequant.is_some() { ", u8 input dequantised" } else { "" },
+            if self.quant.is_some() { ", u8 output quantised" } else { "" }
         )])
     }
 
@@ -359,29 +384,69 @@ impl EvalOp for DepthwiseConv {
         let macs = plane * s.kh * s.kw;
         let group = (SERIAL_MACS / 8 / macs.max(1)).clamp(1, n * c);
         // The thread's buffer: the padded scratch (its borders zero), then a plane for the
-        // dequantised input where the input is u8 (allocated per group and frame, it was).
+        // dequantised input where the input is u8 (allocated per group and frame, it was),
+        // then, where the output is u8, a plane of f32 outputs to quantise.
         let scratch_len = Self::scratch_len(s);
-        let buffer_len = scratch_len + data.buffer_len(h * w);
-        let run = |g: usize, dst: &mut [f32]| {
+        let in_len = data.buffer_len(h * w);
+        let out_len = if self.quant.is_some() { plane } else { 0 };
+        let buffer_len = scratch_len + in_len + out_len;
+        // Channel `k` of group `g` into `d`.
+        let channels = |g: usize, k: usize, d: &mut [f32], scratch: &mut [f32], dequantised: &mut [f32]| {
+            let p = g * group + k;
+            self.channel(p % c, data.plane(p * h * w..(p + 1) * h * w, dequantised), d, scratch);
+        };
+        // The thread's buffer as its three parts: scratch, dequantised input, f32 outputs.
+        let buffers = |f: &mut Parts| {
             super::with_padded(buffer_len, &self.borders, |buffer| {
-                let (scratch, dequantised) = buffer.split_at_mut(scratch_len);
-                for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
-                    let p = g * group + k;
-                    self.channel(p % c, data.plane(p * h * w..(p + 1) * h * w, dequantised), d, scratch);
-                }
+                let (scratch, rest) = buffer.split_at_mut(scratch_len);
+                let (dequantised, values) = rest.split_at_mut(in_len);
+                f(scratch, dequantised, values)
             })
         };
-        let fill = |out: &mut [f32]| {
-            if n * c * macs < SERIAL_MACS {
-                run(0, out);
-            } else {
-                par_chunks(out, group * plane, run);
-            }
-            Ok(())
+        let (serial, len) = (n * c * macs < SERIAL_MACS, group * plane);
+        // SAFETY (both): every channel's plane is written whole (every row, every column block).
+        let out = match &self.quant {
+            None => unsafe {
+                output_tensor_written(&shape, |out: &mut [f32]| {
+                    groups(out, serial, len, |g, dst| {
+                        buffers(&mut |scratch, dequantised, _| {
+                            for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                                channels(g, k, d, scratch, dequantised);
+                            }
+                        })
+                    });
+                    Ok(())
+                })?
+            },
+            Some(q) => unsafe {
+                output_tensor_written(&shape, |out: &mut [u8]| {
+                    groups(out, serial, len, |g, dst| {
+                        buffers(&mut |scratch, dequantised, values| {
+                            for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                                channels(g, k, values, scratch, dequantised);
+                                q.apply(values, d);
+                            }
+                        })
+                    });
+                    Ok(())
+                })?
+            },
         };
-        // SAFETY: every channel's plane is written whole (every row, every column block).
-        let out = unsafe { output_tensor_written(&shape, fill)? };
         Ok(tvec!(reshape_output(out, self.reshape.as_ref())?.into_tvalue()))
+    }
+}
+
+/// What runs on a thread's buffer split in its three parts (scratch, dequantised input, f32
+/// outputs).
+type Parts<'a> = dyn FnMut(&mut [f32], &mut [f32], &mut [f32]) + 'a;
+
+/// `run(group, its planes)` over `out`'s groups of `len` values: on the calling thread where
+/// `serial`, else over the pool's threads.
+fn groups<T: Send>(out: &mut [T], serial: bool, len: usize, run: impl Fn(usize, &mut [T]) + Sync) {
+    if serial {
+        run(0, out);
+    } else {
+        par_chunks(out, len, run);
     }
 }
 
@@ -390,13 +455,18 @@ impl TypedOp for DepthwiseConv {
         let fact = || {
             let (oh, ow) = self.shape.out();
             let (c, oh, ow): (TDim, TDim, TDim) = (self.shape.co.into(), oh.into(), ow.into());
+            let dt = if self.quant.is_some() { u8::datum_type() } else { f32::datum_type() };
             if self.batch {
-                f32::fact([inputs[0].shape[0].clone(), c, oh, ow])
+                dt.fact([inputs[0].shape[0].clone(), c, oh, ow])
             } else {
-                f32::fact([c, oh, ow])
+                dt.fact([c, oh, ow])
             }
         };
-        Ok(tvec!(output_fact(self.reshape.as_ref(), fact)))
+        let mut fact = output_fact(self.reshape.as_ref(), fact);
+        if self.quant.is_some() {
+            fact.datum_type = u8::datum_type();
+        }
+        Ok(tvec!(fact))
     }
 
     fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
@@ -448,6 +518,13 @@ pub(crate) fn past_dequantize(model: &TypedModel, node: &TypedNode, op: Depthwis
         Some((dq, x)) => (op.reading(dq), x),
         None => (op, node.inputs[0]),
     }
+}
+
+/// The [`QuantizeU8`] node that is the sole reader of `last`'s output (the last node a
+/// depthwise convolution stands for), where there is one: the convolution can write its bytes.
+pub(crate) fn quantized_after(model: &TypedModel, last: &TypedNode) -> TractResult<Option<(QuantizeU8, usize)>> {
+    let Some(next) = super::act::sole_consumer(model, last) else { return Ok(None) };
+    Ok(super::quant::quantize_u8(model, next)?.map(|q| (q, next.id)))
 }
 
 #[cfg(test)]
@@ -539,6 +616,16 @@ mod tests {
         }
     }
 
+    /// The u8 tests' layers: stride 1 on the calling thread, stride 2, and stride 1 in channel
+    /// groups (over the pool where there is one).
+    fn u8_shapes() -> [ConvShape; 3] {
+        [
+            ConvShape { ci: 3, h: 9, w: 7, co: 3, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 },
+            ConvShape { ci: 5, h: 33, w: 65, co: 5, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 },
+            ConvShape { ci: 16, h: 64, w: 64, co: 16, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 },
+        ]
+    }
+
     /// Reading u8 data through a dequantiser (and its activation) gives, bit for bit, the
     /// convolution of what the dequantiser writes: stride 1 and 2, one layer on the calling
     /// thread and one in channel groups.
@@ -546,11 +633,7 @@ mod tests {
     fn reading_u8_equals_the_convolution_of_the_dequantised_input() {
         let relu6 = Activation { lo: 0.0, hi: 6.0, hard_swish: false };
         let hard_swish = Activation { hard_swish: true, ..Activation::NONE };
-        for (s, act) in [
-            (ConvShape { ci: 3, h: 9, w: 7, co: 3, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 }, relu6),
-            (ConvShape { ci: 5, h: 33, w: 65, co: 5, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 }, hard_swish),
-            (ConvShape { ci: 16, h: 64, w: 64, co: 16, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 }, hard_swish),
-        ] {
+        for (s, act) in u8_shapes().into_iter().zip([relu6, hard_swish, hard_swish]) {
             let n_in = s.ci * s.h * s.w;
             let bytes: Vec<u8> = (0..n_in).map(|i| (i * 7919 % 251) as u8).collect();
             let weight: Vec<f32> = (0..s.ci * s.kh * s.kw).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
@@ -569,6 +652,51 @@ mod tests {
             let want = run(&op, tract_ndarray::Array4::from_shape_vec(dims, dequantised).unwrap().into_tensor());
             let got = run(&reading, tract_ndarray::Array4::from_shape_vec(dims, bytes).unwrap().into_tensor());
             assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "{s:?}");
+        }
+    }
+
+    /// Writing u8 through a quantiser gives, byte for byte, what the quantiser makes of the
+    /// f32 output (activation included): stride 1 and 2, f32 input and u8 read through a
+    /// dequantiser, on the calling thread and over a pool of two.
+    #[test]
+    fn writing_u8_equals_the_quantised_output() {
+        use tract_linalg::multithread::{multithread_tract_scope, Executor};
+        let hard_swish = Activation { hard_swish: true, ..Activation::NONE };
+        for (s, reads) in u8_shapes().into_iter().zip([false, true, false]) {
+            let n_in = s.ci * s.h * s.w;
+            let weight: Vec<f32> = (0..s.ci * s.kh * s.kw).map(|i| ((i * 104729 % 997) as f32) / 998.0 - 0.5).collect();
+            let bias: Vec<f32> = (0..s.ci).map(|o| o as f32 / 8.0 - 0.3).collect();
+            let op = DepthwiseConv { act: hard_swish, ..DepthwiseConv::new(s.clone(), true, &weight, &bias).unwrap() };
+            let (op, x) = if reads {
+                let bytes: Vec<u8> = (0..n_in).map(|i| (i * 7919 % 251) as u8).collect();
+                let op = op.reading(DequantizeU8::new(0.0173, 117));
+                (op, tract_ndarray::Array4::from_shape_vec((1, s.ci, s.h, s.w), bytes).unwrap().into_tensor())
+            } else {
+                let values: Vec<f32> = (0..n_in).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
+                (op, tract_ndarray::Array4::from_shape_vec((1, s.ci, s.h, s.w), values).unwrap().into_tensor())
+            };
+            let q = QuantizeU8::new(1.0 / 0.013, 21);
+            let writing = op.clone().writing(q.clone());
+            let run = |op: &DepthwiseConv, e: Executor| {
+                multithread_tract_scope(e, || {
+                    op.eval(&EvalContext::out_of_plan(), tvec![x.clone().into_tvalue()]).unwrap()
+                })
+            };
+            let values = run(&op, Executor::SingleThread);
+            let values = values[0].try_as_plain_ram().unwrap();
+            let values = values.as_slice::<f32>().unwrap();
+            let mut want = vec![0u8; values.len()];
+            q.apply(values, &mut want);
+            let distinct = want.iter().collect::<std::collections::HashSet<_>>().len();
+            assert!(distinct > 10 && want.contains(&0), "{s:?}: {distinct} distinct bytes");
+            for e in [Executor::SingleThread, Executor::multithread(2)] {
+                let got = run(&writing, e);
+                assert_eq!(got[0].datum_type(), u8::datum_type());
+                let got = got[0].try_as_plain_ram().unwrap();
+                // SAFETY: the output is u8.
+                let got = unsafe { got.as_slice_unchecked::<u8>() };
+                assert!(got == want.as_slice(), "{s:?}: other bytes");
+            }
         }
     }
 }

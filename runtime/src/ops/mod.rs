@@ -141,7 +141,23 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
             } else if let Some(op) = dwconv::depthwise(model, node)? {
                 done.depthwise += 1;
                 let (op, x) = dwconv::past_dequantize(model, node, op);
-                (with_tail(model, node, op, DepthwiseConv::fused, &mut chain)?.0, tvec![x])
+                let op = match act::tail(model, node, None)? {
+                    Some(t) => {
+                        chain = t.chain.clone();
+                        op.fused(&t)?
+                    }
+                    None => op,
+                };
+                // A quantiser after it (an integer layer reads the output): its bytes written
+                // by the convolution.
+                let op = match dwconv::quantized_after(model, model.node(*chain.last().expect("the node")))? {
+                    Some((q, id)) => {
+                        chain.push(id);
+                        op.writing(q)
+                    }
+                    None => op,
+                };
+                (Box::new(op), tvec![x])
             } else if let Some(op) = dwconv_hwc::depthwise_hwc(model, node)? {
                 done.depthwise += 1;
                 (Box::new(op), tvec![node.inputs[0]])

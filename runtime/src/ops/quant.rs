@@ -29,6 +29,11 @@ impl QuantizeU8 {
     pub fn new(scale: f32, zero_point: u8) -> Self {
         QuantizeU8 { scale, zero_point }
     }
+
+    /// `ys = quantise(xs)`, on this thread: the bytes the operator writes for these values.
+    pub(crate) fn apply(&self, xs: &[f32], ys: &mut [u8]) {
+        kernel::quantize(xs, ys, self.scale, self.zero_point as i32)
+    }
 }
 
 /// The portable formula: tract's for every value whose scaled magnitude fits an `i32`; NaN gives
