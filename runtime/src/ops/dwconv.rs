@@ -20,7 +20,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv::{ConstConv, ConvShape};
 use super::quant::{DequantizeU8, Planes, QuantizeU8};
-use super::{output_tensor_written, par_chunks, same_bits, SERIAL_MACS};
+use super::{output_tensor_written, par_chunks, same_bits, serial_if_small, SERIAL_MACS};
 
 /// Output columns accumulated at once (two 16-lane registers on AVX-512).
 const BLOCK: usize = 32;
@@ -403,12 +403,12 @@ impl EvalOp for DepthwiseConv {
                 f(scratch, dequantised, values)
             })
         };
-        let (serial, len) = (n * c * macs < SERIAL_MACS, group * plane);
+        let len = group * plane;
         // SAFETY (both): every channel's plane is written whole (every row, every column block).
-        let out = match &self.quant {
+        let out = serial_if_small(n * c * macs, || match &self.quant {
             None => unsafe {
                 output_tensor_written(&shape, |out: &mut [f32]| {
-                    groups(out, serial, len, |g, dst| {
+                    par_chunks(out, len, |g, dst| {
                         buffers(&mut |scratch, dequantised, _| {
                             for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
                                 channels(g, k, d, scratch, dequantised);
@@ -416,11 +416,11 @@ impl EvalOp for DepthwiseConv {
                         })
                     });
                     Ok(())
-                })?
+                })
             },
             Some(q) => unsafe {
                 output_tensor_written(&shape, |out: &mut [u8]| {
-                    groups(out, serial, len, |g, dst| {
+                    par_chunks(out, len, |g, dst| {
                         buffers(&mut |scratch, dequantised, values| {
                             for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
                                 channels(g, k, values, scratch, dequantised);
@@ -429,9 +429,9 @@ impl EvalOp for DepthwiseConv {
                         })
                     });
                     Ok(())
-                })?
+                })
             },
-        };
+        })?;
         Ok(tvec!(reshape_output(out, self.reshape.as_ref())?.into_tvalue()))
     }
 }
@@ -440,26 +440,15 @@ impl EvalOp for DepthwiseConv {
 /// outputs).
 type Parts<'a> = dyn FnMut(&mut [f32], &mut [f32], &mut [f32]) + 'a;
 
-/// `run(group, its planes)` over `out`'s groups of `len` values: on the calling thread where
-/// `serial`, else over the pool's threads.
-fn groups<T: Send>(out: &mut [T], serial: bool, len: usize, run: impl Fn(usize, &mut [T]) + Sync) {
-    if serial {
-        run(0, out);
-    } else {
-        par_chunks(out, len, run);
-    }
-}
-
 impl TypedOp for DepthwiseConv {
     fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
         let fact = || {
             let (oh, ow) = self.shape.out();
             let (c, oh, ow): (TDim, TDim, TDim) = (self.shape.co.into(), oh.into(), ow.into());
-            let dt = if self.quant.is_some() { u8::datum_type() } else { f32::datum_type() };
             if self.batch {
-                dt.fact([inputs[0].shape[0].clone(), c, oh, ow])
+                f32::fact([inputs[0].shape[0].clone(), c, oh, ow])
             } else {
-                dt.fact([c, oh, ow])
+                f32::fact([c, oh, ow])
             }
         };
         let mut fact = output_fact(self.reshape.as_ref(), fact);

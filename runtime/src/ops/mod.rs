@@ -141,13 +141,7 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
             } else if let Some(op) = dwconv::depthwise(model, node)? {
                 done.depthwise += 1;
                 let (op, x) = dwconv::past_dequantize(model, node, op);
-                let op = match act::tail(model, node, None)? {
-                    Some(t) => {
-                        chain = t.chain.clone();
-                        op.fused(&t)?
-                    }
-                    None => op,
-                };
+                let op = fuse_tail(model, node, op, DepthwiseConv::fused, &mut chain)?;
                 // A quantiser after it (an integer layer reads the output): its bytes written
                 // by the convolution.
                 let op = match dwconv::quantized_after(model, model.node(*chain.last().expect("the node")))? {
@@ -245,14 +239,25 @@ fn with_tail<T: TypedOp>(
     fuse: fn(T, &act::Tail) -> TractResult<T>,
     chain: &mut Vec<usize>,
 ) -> TractResult<(Box<dyn TypedOp>, TVec<OutletId>)> {
-    let op = match act::tail(model, node, None)? {
+    Ok((Box::new(fuse_tail(model, node, op, fuse, chain)?), tvec![node.inputs[0]]))
+}
+
+/// A convolution `op` standing for `node` with the activation nodes after it fused in by `fuse`
+/// (`chain` then lists them all).
+fn fuse_tail<T>(
+    model: &TypedModel,
+    node: &TypedNode,
+    op: T,
+    fuse: fn(T, &act::Tail) -> TractResult<T>,
+    chain: &mut Vec<usize>,
+) -> TractResult<T> {
+    Ok(match act::tail(model, node, None)? {
         Some(t) => {
             *chain = t.chain.clone();
             fuse(op, &t)?
         }
         None => op,
-    };
-    Ok((Box::new(op), tvec![node.inputs[0]]))
+    })
 }
 
 /// `op` standing for the element-wise `node` with the activation nodes after it taken in by
