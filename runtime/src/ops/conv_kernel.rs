@@ -379,18 +379,20 @@ fn positions<const FUSED: bool>(l: &Layout, padded: &[f32], weights: &[f32], bia
 unsafe fn positions_avx512(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f32; ROWS], out: &mut [f32]) {
     const TILE: usize = ROWS * MAX_PX;
     let tiles = l.positions().div_ceil(MAX_PX);
-    let mut sums = vec![0f32; tiles * TILE];
-    for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
-        for (tile, sums) in sums.chunks_exact_mut(TILE).enumerate() {
-            // SAFETY: `channel_block` asserted every tap's tile in `padded`; `weights` holds
-            // `ROWS` values per tap; `sums` holds a whole tile.
-            unsafe {
-                let base = padded.as_ptr().add(tile * MAX_PX);
-                tile_avx512(base, taps, weights.as_ptr().add(c * CHUNK * ROWS), sums.as_mut_ptr(), c > 0)
-            };
+    // The first pass writes every sum (the thread's buffer, not zeroed: [`super::with_words`]).
+    super::with_words(tiles * TILE, |sums: &mut [f32]| {
+        for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
+            for (tile, sums) in sums.chunks_exact_mut(TILE).enumerate() {
+                // SAFETY: `channel_block` asserted every tap's tile in `padded`; `weights`
+                // holds `ROWS` values per tap; `sums` holds a whole tile.
+                unsafe {
+                    let base = padded.as_ptr().add(tile * MAX_PX);
+                    tile_avx512(base, taps, weights.as_ptr().add(c * CHUNK * ROWS), sums.as_mut_ptr(), c > 0)
+                };
+            }
         }
-    }
-    scatter_tiles::<MAX_PX>(l, &sums, bias, out);
+        scatter_tiles::<MAX_PX>(l, sums, bias, out);
+    })
 }
 
 /// [`positions_avx512`] for at most `CHUNK` taps, each tile finished in registers (bias, then
@@ -479,63 +481,65 @@ unsafe fn positions_neon(l: &Layout, padded: &[f32], weights: &[f32], bias: &[f3
     const CHUNK: usize = 128;
     const TILE: usize = ROWS * NEON_PX;
     let tiles = l.positions().div_ceil(NEON_PX);
-    let mut sums = vec![0f32; tiles * TILE];
-    for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
-        for (tile, sums) in sums.chunks_exact_mut(TILE).enumerate() {
-            // SAFETY (pointer reads and writes): `channel_block` asserted every tap's
-            // `MAX_PX` (>= 12) values from any position in `padded`; `weights` holds `ROWS`
-            // values per tap; `sums` holds a whole tile.
-            unsafe {
-                let s = sums.as_mut_ptr();
-                let mut a = [vdupq_n_f32(0.0); 3 * ROWS];
-                if c > 0 {
-                    for (q, a) in a.iter_mut().enumerate() {
-                        *a = vld1q_f32(s.add(4 * q));
+    // The first pass writes every sum (the thread's buffer, not zeroed: [`super::with_words`]).
+    super::with_words(tiles * TILE, |sums: &mut [f32]| {
+        for (c, taps) in l.taps.chunks(CHUNK).enumerate() {
+            for (tile, sums) in sums.chunks_exact_mut(TILE).enumerate() {
+                // SAFETY (pointer reads and writes): `channel_block` asserted every tap's
+                // `MAX_PX` (>= 12) values from any position in `padded`; `weights` holds `ROWS`
+                // values per tap; `sums` holds a whole tile.
+                unsafe {
+                    let s = sums.as_mut_ptr();
+                    let mut a = [vdupq_n_f32(0.0); 3 * ROWS];
+                    if c > 0 {
+                        for (q, a) in a.iter_mut().enumerate() {
+                            *a = vld1q_f32(s.add(4 * q));
+                        }
                     }
-                }
-                let base = padded.as_ptr().add(tile * NEON_PX);
-                let w = weights.as_ptr().add(c * CHUNK * ROWS);
-                // One tap: its 12 inputs, its 8 weights (the compiler makes the loads a pair
-                // load and a single one, and a pair load), 24 multiply-adds.
-                let tap = |a: &mut [float32x4_t; 3 * ROWS], t: usize, w: *const f32| {
-                    let float32x4x3_t(x0, x1, x2) = vld1q_f32_x3(base.add(t));
-                    let x = [x0, x1, x2];
-                    let float32x4x2_t(w0, w1) = vld1q_f32_x2(w);
-                    macro_rules! row {
-                        ($r:expr, $wv:expr, $lane:expr) => {
-                            for q in 0..3 {
-                                a[3 * $r + q] = vfmaq_laneq_f32::<$lane>(a[3 * $r + q], x[q], $wv);
-                            }
-                        };
+                    let base = padded.as_ptr().add(tile * NEON_PX);
+                    let w = weights.as_ptr().add(c * CHUNK * ROWS);
+                    // One tap: its 12 inputs, its 8 weights (the compiler makes the loads a pair
+                    // load and a single one, and a pair load), 24 multiply-adds.
+                    let tap = |a: &mut [float32x4_t; 3 * ROWS], t: usize, w: *const f32| {
+                        let float32x4x3_t(x0, x1, x2) = vld1q_f32_x3(base.add(t));
+                        let x = [x0, x1, x2];
+                        let float32x4x2_t(w0, w1) = vld1q_f32_x2(w);
+                        macro_rules! row {
+                            ($r:expr, $wv:expr, $lane:expr) => {
+                                for q in 0..3 {
+                                    a[3 * $r + q] = vfmaq_laneq_f32::<$lane>(a[3 * $r + q], x[q], $wv);
+                                }
+                            };
+                        }
+                        row!(0, w0, 0);
+                        row!(1, w0, 1);
+                        row!(2, w0, 2);
+                        row!(3, w0, 3);
+                        row!(4, w1, 0);
+                        row!(5, w1, 1);
+                        row!(6, w1, 2);
+                        row!(7, w1, 3);
+                    };
+                    // Two taps an iteration (in order): the loop's count and branch, and the taps'
+                    // offsets (one pair load), once for both: 29.5 instructions a tap where one at a
+                    // time took 31 (four at a time compiled to as many a tap).
+                    let pairs = taps.chunks_exact(2);
+                    let odd = pairs.remainder();
+                    for (i, p) in pairs.enumerate() {
+                        tap(&mut a, p[0], w.add(2 * i * ROWS));
+                        tap(&mut a, p[1], w.add((2 * i + 1) * ROWS));
                     }
-                    row!(0, w0, 0);
-                    row!(1, w0, 1);
-                    row!(2, w0, 2);
-                    row!(3, w0, 3);
-                    row!(4, w1, 0);
-                    row!(5, w1, 1);
-                    row!(6, w1, 2);
-                    row!(7, w1, 3);
-                };
-                // Two taps an iteration (in order): the loop's count and branch, and the taps'
-                // offsets (one pair load), once for both: 29.5 instructions a tap where one at a
-                // time took 31 (four at a time compiled to as many a tap).
-                let pairs = taps.chunks_exact(2);
-                let odd = pairs.remainder();
-                for (i, p) in pairs.enumerate() {
-                    tap(&mut a, p[0], w.add(2 * i * ROWS));
-                    tap(&mut a, p[1], w.add((2 * i + 1) * ROWS));
-                }
-                if let &[t] = odd {
-                    tap(&mut a, t, w.add((taps.len() - 1) * ROWS));
-                }
-                for (q, a) in a.iter().enumerate() {
-                    vst1q_f32(s.add(4 * q), *a);
+                    if let &[t] = odd {
+                        tap(&mut a, t, w.add((taps.len() - 1) * ROWS));
+                    }
+                    for (q, a) in a.iter().enumerate() {
+                        vst1q_f32(s.add(4 * q), *a);
+                    }
                 }
             }
         }
-    }
-    scatter_tiles::<NEON_PX>(l, &sums, bias, out);
+        scatter_tiles::<NEON_PX>(l, sums, bias, out);
+    })
 }
 
 #[cfg(test)]

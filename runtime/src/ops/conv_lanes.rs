@@ -10,7 +10,8 @@
 //! order, one rounding per multiply-add: the same bits as every other path.
 //!
 //! The same packing serves the compact tiles ([`LanePack::run_compact`]): `16·V` channels by
-//! consecutive *output* positions (AVX2: 16 by 6; AVX-512: 48 by 8, 32 by 10), each position
+//! consecutive *output* positions (AVX2: 16 by 6; AVX-512: 48 by 8, 32 by 10 or 9, the tile
+//! that leaves the fewest positions over in the last one: [`compact_tile`]), each position
 //! reading its own row of the padded input through its own pointer, so that a wide row's
 //! dropped columns are not computed at all. Where they compute at least 5% fewer values
 //! ([`LanePack::tile_for`]) they run faster on both (AVX-512 Xeon: 2-16% on PRL-Track's
@@ -19,7 +20,7 @@
 use super::act::Activation;
 use super::conv::ConvShape;
 use super::conv_kernel::{tile_positions, Layout, ROWS};
-use super::{par_for, SyncPtr};
+use super::{par_for, with_words, SyncPtr};
 
 /// Output channels per register.
 const L: usize = 16;
@@ -41,7 +42,21 @@ pub(crate) struct Lanes<T> {
     co: usize,
     /// For the compact tiles ([`LanePack::run_compact`]) rather than the wide ones.
     compact: bool,
+    /// Positions per tile.
+    px: usize,
     lines: Vec<Line<T>>,
+}
+
+/// The shape of a channels-in-lanes tile: `16·v` output channels by `px` positions, compact
+/// (output positions) or wide (positions of the padded rows).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Tile {
+    /// Registers (16 channels each) per tap.
+    pub v: usize,
+    /// Positions per tile.
+    pub px: usize,
+    /// Compact rather than wide.
+    pub compact: bool,
 }
 
 /// The f32 weights of [`super::conv::PackedConv`], packed for its channels-in-lanes tiles.
@@ -79,7 +94,7 @@ impl<T: Copy + Default> Lanes<T> {
                 }
             }
         }
-        Lanes { v, taps, co, compact: false, lines }
+        Lanes { v, taps, co, compact: false, px: wide_tile_positions(v), lines }
     }
 
     /// Channels per tile.
@@ -89,11 +104,7 @@ impl<T: Copy + Default> Lanes<T> {
 
     /// Positions per tile.
     pub(crate) fn positions(&self) -> usize {
-        if self.compact {
-            compact_tile_positions(self.v)
-        } else {
-            wide_tile_positions(self.v)
-        }
+        self.px
     }
 
     /// Output channels and taps packed.
@@ -120,32 +131,23 @@ impl LanePack {
     /// Pack OIHW `weight` (`[co][taps]`) for the tiles [`LanePack::tile_for`] chooses,
     /// keeping the taps `live`; `None` where neither suits this machine.
     pub(crate) fn new(weight: &[f32], taps: usize, live: &[usize], shape: &ConvShape) -> Option<LanePack> {
-        let (v, compact) = Self::tile_for(shape)?;
-        Some(Self::with_tile(weight, taps, live, shape.co, v, compact))
+        let tile = Self::tile_for(shape)?;
+        Some(Self::with_tile(weight, taps, live, shape.co, tile))
     }
 
-    /// Pack OIHW `weight` (`[co][taps]`) for tiles of `v` registers, compact or wide, keeping
-    /// the taps `live`.
-    pub(crate) fn with_tile(
-        weight: &[f32],
-        taps: usize,
-        live: &[usize],
-        co: usize,
-        v: usize,
-        compact: bool,
-    ) -> LanePack {
-        let mut pack = Lanes::pack(co, live.len(), v, |o, i| weight[o * taps + live[i]]);
-        pack.compact = compact;
+    /// Pack OIHW `weight` (`[co][taps]`) for `tile`, keeping the taps `live`.
+    pub(crate) fn with_tile(weight: &[f32], taps: usize, live: &[usize], co: usize, tile: Tile) -> LanePack {
+        let mut pack = Lanes::pack(co, live.len(), tile.v, |o, i| weight[o * taps + live[i]]);
+        (pack.compact, pack.px) = (tile.compact, tile.px);
         pack
     }
 
-    /// The registers per tap (`16·v` channels) and whether the tiles are compact, for a
-    /// convolution of `shape` on this machine; `None` where [`super::conv_kernel`]'s tiles
-    /// (channels in rows, positions in lanes) serve.
+    /// The tile for a convolution of `shape` on this machine; `None` where
+    /// [`super::conv_kernel`]'s tiles (channels in rows, positions in lanes) serve.
     ///
     /// - AVX-512, 32 channels or more ([`Lanes::registers_for`]): the wide tiles of `16·v`
-    ///   channels, or the compact ones of `16·v` channels by 8 (three registers) or 10 (two)
-    ///   output positions where they compute at least 5% fewer values.
+    ///   channels, or the compact ones ([`compact_tile`]: 48 channels by 8 output positions or
+    ///   32 by 10 or 9) where they compute at least 5% fewer values.
     /// - AVX2: the compact tiles of 16 channels by 6 output positions where they compute at
     ///   least 5% fewer values than [`super::conv_kernel`]'s tiles of 4 channels (half a block)
     ///   by [`tile_positions`] wide positions.
@@ -157,35 +159,36 @@ impl LanePack {
     /// tiles, made the template graph 1.5% faster on one and on two threads). Small maps, where
     /// a wide row's dropped columns are a large share (PRL-Track's template layers 1-5:
     /// 8-25%), take the compact tiles.
-    pub(crate) fn tile_for(shape: &ConvShape) -> Option<(usize, bool)> {
+    pub(crate) fn tile_for(shape: &ConvShape) -> Option<Tile> {
         use crate::isa::F32Kernel;
         let ((oh, ow), wp, co) = (shape.out(), shape.phase().1, shape.co);
-        let (v, wide_channels, wide_px) = match crate::isa::f32_kernel() {
+        let (v, wide_channels, wide_px, (cv, cpx)) = match crate::isa::f32_kernel() {
             F32Kernel::Avx512 => {
                 let v = Self::registers_for(co)?;
-                (v, L * v, wide_tile_positions(v))
+                (v, L * v, wide_tile_positions(v), compact_tile(co, oh * ow))
             }
-            F32Kernel::Avx2Fma => (1, ROWS / 2, tile_positions()),
+            F32Kernel::Avx2Fma => (1, ROWS / 2, tile_positions(), (1, COMPACT_P)),
             _ => return None,
         };
         let wide = ((oh - 1) * wp + ow).div_ceil(wide_px) * wide_px * co.div_ceil(wide_channels) * wide_channels;
-        let px = compact_tile_positions(v);
-        let compact = (oh * ow).div_ceil(px) * px * co.div_ceil(L * v) * L * v;
-        let compact = co >= L && (shape.ci >= L || v > 1) && compact * 20 < wide * 19;
-        (compact || v > 1).then_some((v, compact))
+        let compact = computed(co, oh * ow, (cv, cpx));
+        if co >= L && (shape.ci >= L || cv > 1) && compact * 20 < wide * 19 {
+            return Some(Tile { v: cv, px: cpx, compact: true });
+        }
+        (v > 1).then_some(Tile { v, px: wide_px, compact: false })
     }
 
     /// Whether [`super::conv::PackedConv`] runs a convolution of `shape` in the compact tiles
     /// on this machine ([`LanePack::tile_for`]).
     pub(crate) fn compact_pays(shape: &ConvShape) -> bool {
-        Self::tile_for(shape).is_some_and(|(_, compact)| compact)
+        Self::tile_for(shape).is_some_and(|t| t.compact)
     }
 
     /// The output positions the compact tiles compute for `shape`: the plane's, rounded up to
     /// whole tiles.
     pub(crate) fn compact_positions(shape: &ConvShape) -> usize {
         let (oh, ow) = shape.out();
-        let px = Self::tile_for(shape).map_or(COMPACT_P, |(v, _)| compact_tile_positions(v));
+        let px = Self::tile_for(shape).map_or(COMPACT_P, |t| t.px);
         (oh * ow).div_ceil(px) * px
     }
 
@@ -205,35 +208,41 @@ impl LanePack {
         assert!(out.len() == self.co * plane && bias.len() >= self.co);
         let dst = SyncPtr(out.as_mut_ptr());
         for_each_item(self.co.div_ceil(oc), plane.div_ceil(px), |b, first, count| {
-            let weights = self.block(b);
-            let mut sums = vec![0f32; count * oc * px];
-            #[cfg(target_arch = "x86_64")]
-            let offsets = compact_offsets(l, first * px, count * px);
-            match (self.v, crate::isa::f32_kernel()) {
-                // SAFETY: the CPU has AVX2 and FMA; every read stays in `padded` (asserted
-                // above: every tap from any output position's offset) and `weights`.
+            with_words(count * oc * px, |sums: &mut [f32]| {
+                let weights = self.block(b);
                 #[cfg(target_arch = "x86_64")]
-                (1, crate::isa::F32Kernel::Avx2Fma | crate::isa::F32Kernel::Avx512) => unsafe {
-                    compact_avx2(l, padded, weights, &offsets, &mut sums)
-                },
-                // SAFETY: the CPU has AVX-512F; as above.
-                #[cfg(target_arch = "x86_64")]
-                (3, crate::isa::F32Kernel::Avx512) => unsafe {
-                    compact_avx512::<3, 8>(l, padded, weights, &offsets, &mut sums)
-                },
-                // SAFETY: as above.
-                #[cfg(target_arch = "x86_64")]
-                (2, crate::isa::F32Kernel::Avx512) => unsafe {
-                    compact_avx512::<2, 10>(l, padded, weights, &offsets, &mut sums)
-                },
-                _ => compact_tiles(l, oc, px, padded, weights, first, &mut sums),
-            }
-            let rows = oc.min(self.co - b * oc);
-            let places: Vec<(usize, usize)> =
-                (0..count * px).map(|q| (q * oc, first * px + q)).take_while(|&(_, at)| at < plane).collect();
-            // SAFETY: each place is within the plane; channels `b·oc .. b·oc + rows <= co`
-            // (asserted); this item's alone.
-            unsafe { store_sums(&dst, &sums, b * oc, rows, plane, &places, bias, act) };
+                let offsets = compact_offsets(l, first * px, count * px);
+                match (self.v, px, crate::isa::f32_kernel()) {
+                    // SAFETY: the CPU has AVX2 and FMA; every read stays in `padded` (asserted
+                    // above: every tap from any output position's offset) and `weights`.
+                    #[cfg(target_arch = "x86_64")]
+                    (1, COMPACT_P, crate::isa::F32Kernel::Avx2Fma | crate::isa::F32Kernel::Avx512) => unsafe {
+                        compact_avx2(l, padded, weights, &offsets, sums)
+                    },
+                    // SAFETY: the CPU has AVX-512F; as above.
+                    #[cfg(target_arch = "x86_64")]
+                    (3, 8, crate::isa::F32Kernel::Avx512) => unsafe {
+                        compact_avx512::<3, 8>(l, padded, weights, &offsets, sums)
+                    },
+                    // SAFETY: as above.
+                    #[cfg(target_arch = "x86_64")]
+                    (2, 10, crate::isa::F32Kernel::Avx512) => unsafe {
+                        compact_avx512::<2, 10>(l, padded, weights, &offsets, sums)
+                    },
+                    // SAFETY: as above.
+                    #[cfg(target_arch = "x86_64")]
+                    (2, 9, crate::isa::F32Kernel::Avx512) => unsafe {
+                        compact_avx512::<2, 9>(l, padded, weights, &offsets, sums)
+                    },
+                    _ => compact_tiles(l, oc, px, padded, weights, first, sums),
+                }
+                let rows = oc.min(self.co - b * oc);
+                let places: Vec<(usize, usize)> =
+                    (0..count * px).map(|q| (q * oc, first * px + q)).take_while(|&(_, at)| at < plane).collect();
+                // SAFETY: each place is within the plane; channels `b·oc .. b·oc + rows <= co`
+                // (asserted); this item's alone.
+                unsafe { store_sums(&dst, sums, b * oc, rows, plane, &places, bias, act) };
+            })
         });
     }
 
@@ -247,28 +256,30 @@ impl LanePack {
         assert!(out.len() == self.co * l.oh * l.ow && bias.len() >= self.co);
         let dst = SyncPtr(out.as_mut_ptr());
         for_each_item(self.co.div_ceil(oc), l.positions().div_ceil(px), |b, first, count| {
-            let weights = self.block(b);
-            let mut sums = vec![0f32; count * oc * px];
-            match (self.v, crate::isa::f32_kernel()) {
-                // SAFETY: the CPU has AVX-512F; every read stays in `padded` (asserted above:
-                // the last tile's `px` positions from any tap) and `weights`.
-                #[cfg(target_arch = "x86_64")]
-                (3, crate::isa::F32Kernel::Avx512) => unsafe {
-                    tiles_avx512::<3, 8>(l, padded, weights, first, &mut sums)
-                },
-                // SAFETY: as above.
-                #[cfg(target_arch = "x86_64")]
-                (2, crate::isa::F32Kernel::Avx512) => unsafe {
-                    tiles_avx512::<2, 12>(l, padded, weights, first, &mut sums)
-                },
-                _ => tiles(l, oc, px, padded, weights, first, &mut sums),
-            }
-            let rows = oc.min(self.co - b * oc);
-            let plane = l.oh * l.ow;
-            let places: Vec<(usize, usize)> = places(l, px, first, count * px).map(|(q, at)| (q * oc, at)).collect();
-            // SAFETY: each place is within a plane; channels `b·oc .. b·oc + rows <= co`
-            // (asserted); this item's alone.
-            unsafe { store_sums(&dst, &sums, b * oc, rows, plane, &places, bias, act) };
+            with_words(count * oc * px, |sums: &mut [f32]| {
+                let weights = self.block(b);
+                match (self.v, crate::isa::f32_kernel()) {
+                    // SAFETY: the CPU has AVX-512F; every read stays in `padded` (asserted
+                    // above: the last tile's `px` positions from any tap) and `weights`.
+                    #[cfg(target_arch = "x86_64")]
+                    (3, crate::isa::F32Kernel::Avx512) => unsafe {
+                        tiles_avx512::<3, 8>(l, padded, weights, first, sums)
+                    },
+                    // SAFETY: as above.
+                    #[cfg(target_arch = "x86_64")]
+                    (2, crate::isa::F32Kernel::Avx512) => unsafe {
+                        tiles_avx512::<2, 12>(l, padded, weights, first, sums)
+                    },
+                    _ => tiles(l, oc, px, padded, weights, first, sums),
+                }
+                let rows = oc.min(self.co - b * oc);
+                let plane = l.oh * l.ow;
+                let places: Vec<(usize, usize)> =
+                    places(l, px, first, count * px).map(|(q, at)| (q * oc, at)).collect();
+                // SAFETY: each place is within a plane; channels `b·oc .. b·oc + rows <= co`
+                // (asserted); this item's alone.
+                unsafe { store_sums(&dst, sums, b * oc, rows, plane, &places, bias, act) };
+            })
         });
     }
 }
@@ -484,6 +495,7 @@ pub(super) fn places(l: &Layout, px: usize, first: usize, n: usize) -> impl Iter
 /// `first..` (as many as `sums` holds), `sums[tile][position][channel]`, fused multiply-adds
 /// in tap order from zero.
 fn tiles(l: &Layout, oc: usize, px: usize, padded: &[f32], weights: &[f32], first: usize, sums: &mut [f32]) {
+    sums.fill(0.0);
     for (k, tile) in sums.chunks_exact_mut(oc * px).enumerate() {
         let base = (first + k) * px;
         for (q, s) in tile.chunks_exact_mut(oc).enumerate() {
@@ -512,11 +524,24 @@ fn wide_tile_positions(v: usize) -> usize {
 
 /// Output positions per compact tile of `v` registers: 6 on AVX2 (one register of 16
 /// channels: 12 accumulators of 8 lanes), 8 on AVX-512 (16 or 24 accumulators).
-fn compact_tile_positions(v: usize) -> usize {
-    match v {
-        1 => COMPACT_P,
-        2 => 10,
-        _ => 8,
+/// The values a layer of `co` channels and `plane` output positions computes in compact tiles
+/// of `16·v` channels by `px` positions (both rounded up to whole tiles).
+fn computed(co: usize, plane: usize, (v, px): (usize, usize)) -> usize {
+    plane.div_ceil(px) * px * co.div_ceil(L * v) * L * v
+}
+
+/// The AVX-512 compact tile (registers, positions) for `co` channels and `plane` output
+/// positions: 48 channels by 8 where 48 divides `co`, else 32 by 10; or 32 by 10 or by 9 where
+/// that computes at least 2% fewer values (PRL-Track's template: `zf5`'s 6x6 map is four tiles
+/// of 9, not of 10, 10% fewer values, 0.65 -> 0.58 ms on one thread; layer 3's 10x10 ten
+/// tiles of 10, not 13 of 8).
+fn compact_tile(co: usize, plane: usize) -> (usize, usize) {
+    let first = if co.is_multiple_of(3 * L) { (3, 8) } else { (2, 10) };
+    let best = [first, (2, 10), (2, 9)].into_iter().min_by_key(|&t| computed(co, plane, t)).unwrap_or(first);
+    if computed(co, plane, best) * 50 < computed(co, plane, first) * 49 {
+        best
+    } else {
+        first
     }
 }
 
@@ -550,6 +575,7 @@ fn compact_offsets(l: &Layout, from: usize, n: usize) -> Vec<usize> {
 /// `sums[tile][position][channel]`, fused multiply-adds in tap order from zero; positions past
 /// the plane repeat its last.
 fn compact_tiles(l: &Layout, oc: usize, px: usize, padded: &[f32], weights: &[f32], first: usize, sums: &mut [f32]) {
+    sums.fill(0.0);
     for (i, s) in sums.chunks_exact_mut(oc).enumerate() {
         let base = compact_offset(l, first * px + i);
         for (&t, w) in l.taps.iter().zip(weights.chunks_exact(oc)) {
@@ -808,10 +834,10 @@ mod tests {
             let live: Vec<usize> = (0..taps).collect();
             let bias: Vec<f32> = (0..co).map(|o| o as f32 / 8.0).collect();
             let plane = l.oh * l.ow;
-            for v in [1, 2, 3] {
-                let pack = LanePack::with_tile(&weight, taps, &live, co, v, true);
-                let (oc, px) = (pack.channels(), pack.positions());
-                assert!(pack.compact() && px == compact_tile_positions(v));
+            for (v, px) in [(1, COMPACT_P), (2, 10), (2, 9), (3, 8)] {
+                let pack = LanePack::with_tile(&weight, taps, &live, co, Tile { v, px, compact: true });
+                let oc = pack.channels();
+                assert!(pack.compact() && px == pack.positions());
                 let mut got = vec![0f32; co * plane];
                 pack.run_compact(&l, &padded, &bias, Activation::NONE, &mut got);
                 let (tiles_n, wide_n) = (plane.div_ceil(px), l.positions().div_ceil(px));
@@ -827,11 +853,11 @@ mod tests {
                             let want = s + bias[o];
                             assert!(
                                 sums[at * oc + r] + bias[o] == want,
-                                "{co} channels, {v}: compact and wide sums differ"
+                                "{co} channels, {v}x{px}: compact and wide sums differ"
                             );
                             assert!(
                                 got[o * plane + at] == want,
-                                "{co} channels, {v}: output {o} at {at}: dispatched differs"
+                                "{co} channels, {v}x{px}: output {o} at {at}: dispatched differs"
                             );
                         }
                     }
@@ -842,7 +868,7 @@ mod tests {
                 pack.run_compact(&l, &padded, &bias, act, &mut with_act);
                 let mut want = got.clone();
                 act.apply_all(&mut want);
-                assert!(with_act == want, "{co} channels, {v}: the activation differs");
+                assert!(with_act == want, "{co} channels, {v}x{px}: the activation differs");
                 for o in [0, co - 1] {
                     for at in [0, plane - 1] {
                         let (y, x) = (at / l.ow, at % l.ow);
@@ -873,7 +899,8 @@ mod tests {
             let weight: Vec<f32> = (0..co * taps).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
             let live: Vec<usize> = (0..taps).collect();
             let v = LanePack::registers_for(co).unwrap();
-            let pack = LanePack::with_tile(&weight, taps, &live, co, v, false);
+            let pack =
+                LanePack::with_tile(&weight, taps, &live, co, Tile { v, px: wide_tile_positions(v), compact: false });
             let bias: Vec<f32> = (0..co).map(|o| o as f32 / 8.0).collect();
             let mut got = vec![0f32; co * l.oh * l.ow];
             pack.run(&l, &padded, &bias, Activation::NONE, &mut got);

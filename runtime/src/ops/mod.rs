@@ -362,6 +362,39 @@ fn with_padded<R>(len: usize, borders: &[(usize, usize)], f: impl FnOnce(&mut [f
     })
 }
 
+/// A value of four bytes for which every bit pattern is valid (the kernels' sums).
+trait Word: Copy {}
+impl Word for f32 {}
+impl Word for i32 {}
+
+/// Run `f` on the calling thread's buffer of `len` values of four bytes, kept from call to call
+/// (it grows to the largest `len` asked for): the values are whatever its last use left, so
+/// `f` writes before it reads. The tiles' sums: an item of PRL-Track's template layer 1 took
+/// 0.67 MB of sums, allocated and zeroed for each of its two channel blocks (0.05 of 1.7 ms).
+fn with_words<T: Word, R>(len: usize, f: impl FnOnce(&mut [T]) -> R) -> R {
+    use std::cell::RefCell;
+    const { assert!(size_of::<T>() == 4 && align_of::<T>() == 4) };
+    thread_local! {
+        static BUFFER: RefCell<Vec<u32>> = const { RefCell::new(Vec::new()) };
+    }
+    BUFFER.with(|b| match b.try_borrow_mut() {
+        Ok(mut v) => {
+            if v.len() < len {
+                v.resize(len, 0);
+            }
+            // SAFETY: `T` is four bytes with no invalid bit pattern ([`Word`]: f32, i32), as
+            // aligned as u32; the `len` values are initialised u32s, borrowed mutably here alone.
+            f(unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<T>(), len) })
+        }
+        // In use further up this thread's stack: a buffer of its own.
+        Err(_) => {
+            let mut v = vec![0u32; len];
+            // SAFETY: as above.
+            f(unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<T>(), len) })
+        }
+    })
+}
+
 /// The runs `(start, len)` of a `len`-long buffer that `write` leaves as they were: what
 /// [`with_padded`] must zero for a padded input that `write` fills (found once, when an
 /// operator is made, by writing into a buffer of NaNs).

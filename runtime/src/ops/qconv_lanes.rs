@@ -15,7 +15,7 @@ use super::conv_lanes::{for_each_item, places, store_by_channel, Lanes};
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::requant_lanes;
 use super::qconv_kernel::requant_one;
-use super::SyncPtr;
+use super::{with_words, SyncPtr};
 
 /// Output channels per register.
 const L: usize = 16;
@@ -78,55 +78,57 @@ impl QLanePack {
         assert!(out.len() == co * g.oh * g.ow);
         let dst = SyncPtr(out.as_mut_ptr());
         for_each_item(co.div_ceil(oc), g.positions().div_ceil(px), |b, first, count| {
-            let weights = self.lanes.block(b);
-            let mut sums = vec![0i32; count * oc * px];
-            match oc / L {
-                // SAFETY: `QLanePack`s are made only where the CPU has AVX-512 VNNI
-                // (`PackedQConv::new`); every read stays in `words` (asserted above) and
-                // `weights`.
+            with_words(count * oc * px, |sums: &mut [i32]| {
+                let weights = self.lanes.block(b);
+                match oc / L {
+                    // SAFETY: `QLanePack`s are made only where the CPU has AVX-512 VNNI
+                    // (`PackedQConv::new`); every read stays in `words` (asserted above) and
+                    // `weights`.
+                    #[cfg(target_arch = "x86_64")]
+                    3 if crate::isa().vnni => unsafe { tiles_vnni::<3, 8>(g, words, weights, first, sums) },
+                    // SAFETY: as above.
+                    #[cfg(target_arch = "x86_64")]
+                    2 if crate::isa().vnni => unsafe { tiles_vnni::<2, 12>(g, words, weights, first, sums) },
+                    _ => tiles(g, oc, px, words, weights, first, sums),
+                }
+                let rows = oc.min(co - b * oc);
+                let plane = g.oh * g.ow;
+                let offset = &self.offset[b * oc..(b + 1) * oc];
+                let scale = &self.scale[b * oc..(b + 1) * oc];
+                let vector = cfg!(target_arch = "x86_64") && crate::isa().avx512;
+                // The item's real output positions: consecutive outputs (the wide columns, where
+                // there are some, left out), each with its first sum.
+                let places: Vec<(usize, usize)> =
+                    places(g, px, first, count * px).map(|(q, at)| (q * oc, at)).collect();
                 #[cfg(target_arch = "x86_64")]
-                3 if crate::isa().vnni => unsafe { tiles_vnni::<3, 8>(g, words, weights, first, &mut sums) },
-                // SAFETY: as above.
-                #[cfg(target_arch = "x86_64")]
-                2 if crate::isa().vnni => unsafe { tiles_vnni::<2, 12>(g, words, weights, first, &mut sums) },
-                _ => tiles(g, oc, px, words, weights, first, &mut sums),
-            }
-            let rows = oc.min(co - b * oc);
-            let plane = g.oh * g.ow;
-            let offset = &self.offset[b * oc..(b + 1) * oc];
-            let scale = &self.scale[b * oc..(b + 1) * oc];
-            let vector = cfg!(target_arch = "x86_64") && crate::isa().avx512;
-            // The item's real output positions: consecutive outputs (the wide columns, where
-            // there are some, left out), each with its first sum.
-            let places: Vec<(usize, usize)> = places(g, px, first, count * px).map(|(q, at)| (q * oc, at)).collect();
-            #[cfg(target_arch = "x86_64")]
-            if vector && places.windows(2).all(|p| p[1].1 == p[0].1 + 1) {
-                // SAFETY: the CPU has AVX-512F; channels `b·oc .. b·oc + rows < co` at the
-                // places (within a plane) are within `out` (asserted) and this item's alone;
-                // `offset` and `scale` hold `oc` values, a multiple of 16.
-                unsafe {
-                    requant_transposed(
-                        &sums,
-                        oc,
-                        rows,
-                        offset,
-                        (scale, self.exact),
-                        y0,
-                        dst.at(b * oc * plane),
-                        plane,
-                        &places,
-                    )
-                };
-                return;
-            }
-            // Each position's bytes, then stored channel by channel (`store_by_channel`).
-            let mut bytes = vec![0u8; sums.len()];
-            for &(i, _) in &places {
-                requantise_lanes(vector, &sums[i..i + oc], offset, (scale, self.exact), y0, &mut bytes[i..i + oc]);
-            }
-            // SAFETY: each place is within a plane; channels `b·oc .. b·oc + rows <= co`
-            // (asserted); this item's alone.
-            unsafe { store_by_channel(&dst, &bytes, b * oc, rows, plane, &places, |_, v| v) };
+                if vector && places.windows(2).all(|p| p[1].1 == p[0].1 + 1) {
+                    // SAFETY: the CPU has AVX-512F; channels `b·oc .. b·oc + rows < co` at the
+                    // places (within a plane) are within `out` (asserted) and this item's alone;
+                    // `offset` and `scale` hold `oc` values, a multiple of 16.
+                    unsafe {
+                        requant_transposed(
+                            sums,
+                            oc,
+                            rows,
+                            offset,
+                            (scale, self.exact),
+                            y0,
+                            dst.at(b * oc * plane),
+                            plane,
+                            &places,
+                        )
+                    };
+                    return;
+                }
+                // Each position's bytes, then stored channel by channel (`store_by_channel`).
+                let mut bytes = vec![0u8; sums.len()];
+                for &(i, _) in &places {
+                    requantise_lanes(vector, &sums[i..i + oc], offset, (scale, self.exact), y0, &mut bytes[i..i + oc]);
+                }
+                // SAFETY: each place is within a plane; channels `b·oc .. b·oc + rows <= co`
+                // (asserted); this item's alone.
+                unsafe { store_by_channel(&dst, &bytes, b * oc, rows, plane, &places, |_, v| v) };
+            })
         });
     }
 }
@@ -221,6 +223,7 @@ fn dot4(x: u32, w: i32) -> i32 {
 /// The portable tiles (the reference the VNNI ones are tested against): tiles `first..` (as
 /// many as `sums` holds), `sums[tile][position][channel]`.
 fn tiles(g: &Layout, oc: usize, px: usize, words: &[u32], weights: &[i32], first: usize, sums: &mut [i32]) {
+    sums.fill(0);
     for (k, tile) in sums.chunks_exact_mut(oc * px).enumerate() {
         let base = (first + k) * px;
         for (q, s) in tile.chunks_exact_mut(oc).enumerate() {
