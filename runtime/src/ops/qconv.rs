@@ -35,7 +35,7 @@ use super::qconv_kernel::{avx2_pairs, bytemuck_words, exact_fits, requantise, ti
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant, Planes};
 use super::qconv_lanes::QLanePack;
-use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits, ConvShape};
+use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits, with_words, ConvShape};
 #[cfg(target_arch = "x86_64")]
 use super::{par_for, SyncPtr};
 
@@ -356,54 +356,56 @@ impl PackedQConv {
             return;
         }
         par_chunks(dst, ROWS * plane, |b, out| {
-            let mut sums = vec![0i32; positions.div_ceil(PX) * PX * ROWS];
-            let weights = &self.weights[b * taps.len() * ROWS..(b + 1) * taps.len() * ROWS];
-            match path {
-                // SAFETY: the path is one the CPU has ([`words_path`]); every tile of every tap
-                // lies in `words` (padded by `PX + wp` words).
-                WordsPath::Vnni => unsafe { tiles_vnni(words, taps, weights, positions, &mut sums) },
-                WordsPath::Avx2 => {
-                    let pairs = self.pairs.as_deref().expect("the AVX2 path's pairs are packed with the op");
-                    let pairs = &pairs[2 * b * taps.len() * ROWS..2 * (b + 1) * taps.len() * ROWS];
-                    // SAFETY: as above; `pairs` holds two words per weight word.
-                    unsafe { tiles_avx2(words, taps, pairs, positions, &mut sums) }
+            // Every tile's sums are written before they are read: the thread's buffer.
+            with_words(positions.div_ceil(PX) * PX * ROWS, |sums: &mut [i32]| {
+                let weights = &self.weights[b * taps.len() * ROWS..(b + 1) * taps.len() * ROWS];
+                match path {
+                    // SAFETY: the path is one the CPU has ([`words_path`]); every tile of every tap
+                    // lies in `words` (padded by `PX + wp` words).
+                    WordsPath::Vnni => unsafe { tiles_vnni(words, taps, weights, positions, sums) },
+                    WordsPath::Avx2 => {
+                        let pairs = self.pairs.as_deref().expect("the AVX2 path's pairs are packed with the op");
+                        let pairs = &pairs[2 * b * taps.len() * ROWS..2 * (b + 1) * taps.len() * ROWS];
+                        // SAFETY: as above; `pairs` holds two words per weight word.
+                        unsafe { tiles_avx2(words, taps, pairs, positions, sums) }
+                    }
+                    // SAFETY: as above.
+                    #[cfg(target_arch = "aarch64")]
+                    WordsPath::Sdot => unsafe { tiles_sdot(words, taps, weights, positions, sums) },
+                    #[cfg(not(target_arch = "aarch64"))]
+                    WordsPath::Sdot => unreachable!("SDOT is aarch64's"),
                 }
-                // SAFETY: as above.
-                #[cfg(target_arch = "aarch64")]
-                WordsPath::Sdot => unsafe { tiles_sdot(words, taps, weights, positions, &mut sums) },
-                #[cfg(not(target_arch = "aarch64"))]
-                WordsPath::Sdot => unreachable!("SDOT is aarch64's"),
-            }
-            if wq == ow {
-                // No wide columns (a 1x1 layer without padding): each tile's row of sums is
-                // `PX` consecutive outputs, requantised where it lies (a gather value by value
-                // cost as much as the products on AVX2).
+                if wq == ow {
+                    // No wide columns (a 1x1 layer without padding): each tile's row of sums is
+                    // `PX` consecutive outputs, requantised where it lies (a gather value by value
+                    // cost as much as the products on AVX2).
+                    for (r, out) in out.chunks_exact_mut(plane).enumerate() {
+                        for (tile, out) in out.chunks_mut(PX).enumerate() {
+                            let at = tile * PX * ROWS + r * PX;
+                            requant(b * ROWS + r, &sums[at..at + out.len()], out);
+                        }
+                    }
+                    return;
+                }
+                // Each channel's plane gathered whole, then requantised in one pass (row by row, a
+                // map 26 wide left 10 of every 26 values to the scalar remainder).
+                let mut gathered = vec![0i32; plane];
                 for (r, out) in out.chunks_exact_mut(plane).enumerate() {
-                    for (tile, out) in out.chunks_mut(PX).enumerate() {
-                        let at = tile * PX * ROWS + r * PX;
-                        requant(b * ROWS + r, &sums[at..at + out.len()], out);
+                    for (y, row) in gathered.chunks_exact_mut(ow).enumerate() {
+                        // The row's positions `y·wq ..` by the runs that lie in one tile (value by
+                        // value, the gather took 7 of a 187 ms int8 step on a modelled A78).
+                        let mut x = 0;
+                        while x < ow {
+                            let p = y * wq + x;
+                            let n = (PX - p % PX).min(ow - x);
+                            let at = (p / PX) * PX * ROWS + r * PX + p % PX;
+                            row[x..x + n].copy_from_slice(&sums[at..at + n]);
+                            x += n;
+                        }
                     }
+                    requant(b * ROWS + r, &gathered, out);
                 }
-                return;
-            }
-            // Each channel's plane gathered whole, then requantised in one pass (row by row, a
-            // map 26 wide left 10 of every 26 values to the scalar remainder).
-            let mut gathered = vec![0i32; plane];
-            for (r, out) in out.chunks_exact_mut(plane).enumerate() {
-                for (y, row) in gathered.chunks_exact_mut(ow).enumerate() {
-                    // The row's positions `y·wq ..` by the runs that lie in one tile (value by
-                    // value, the gather took 7 of a 187 ms int8 step on a modelled A78).
-                    let mut x = 0;
-                    while x < ow {
-                        let p = y * wq + x;
-                        let n = (PX - p % PX).min(ow - x);
-                        let at = (p / PX) * PX * ROWS + r * PX + p % PX;
-                        row[x..x + n].copy_from_slice(&sums[at..at + n]);
-                        x += n;
-                    }
-                }
-                requant(b * ROWS + r, &gathered, out);
-            }
+            })
         });
     }
 }
