@@ -335,6 +335,36 @@ unsafe fn output_tensor_written<T: Datum + Copy>(
     Ok(t)
 }
 
+/// A value of four bytes for which every bit pattern is valid (the kernels' sums, the padded
+/// inputs).
+trait Word: Copy {}
+impl Word for f32 {}
+impl Word for i32 {}
+
+/// A thread's buffer kept from call to call ([`with_padded`], [`with_words`]).
+type Kept = std::thread::LocalKey<std::cell::RefCell<Vec<u32>>>;
+
+/// Run `f` on `len` values of the calling thread's buffer `kept`, which grows to the largest
+/// `len` asked for: the values are whatever its last use left. In use further up this thread's
+/// stack (not the case today), a zeroed buffer of its own.
+fn lend<T: Word, R>(kept: &'static Kept, len: usize, f: impl FnOnce(&mut [T]) -> R) -> R {
+    const { assert!(size_of::<T>() == 4 && align_of::<T>() == 4) };
+    let words = |v: &mut [u32]| {
+        // SAFETY: `T` is four bytes with no invalid bit pattern ([`Word`]: f32, i32), as
+        // aligned as u32; the values are initialised u32s, borrowed mutably here alone.
+        unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<T>(), v.len()) }
+    };
+    kept.with(|b| match b.try_borrow_mut() {
+        Ok(mut v) => {
+            if v.len() < len {
+                v.resize(len, 0);
+            }
+            f(words(&mut v[..len]))
+        }
+        Err(_) => f(words(&mut vec![0u32; len])),
+    })
+}
+
 /// Run `f` on a buffer of `len` values whose positions `borders` lists (runs `(start, len)`)
 /// are zero and the others hold whatever the thread's last use left: the scratch of a padded
 /// input, whose interior the caller writes whole before reading it. The buffer is the calling
@@ -342,57 +372,28 @@ unsafe fn output_tensor_written<T: Datum + Copy>(
 /// padded plane costs neither an allocation nor the zeroing of its interior (the stem's 0.8 MB
 /// and the depthwise layers' planes were zeroed on every frame: 2% of NanoTrack's step).
 fn with_padded<R>(len: usize, borders: &[(usize, usize)], f: impl FnOnce(&mut [f32]) -> R) -> R {
-    use std::cell::RefCell;
     thread_local! {
-        static BUFFER: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
+        static PADDED: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
     }
-    BUFFER.with(|b| match b.try_borrow_mut() {
-        Ok(mut v) => {
-            if v.len() < len {
-                v.resize(len, 0.0);
-            }
-            let buf = &mut v[..len];
-            for &(at, n) in borders {
-                buf[at..at + n].fill(0.0);
-            }
-            f(buf)
+    lend(&PADDED, len, |buf: &mut [f32]| {
+        for &(at, n) in borders {
+            buf[at..at + n].fill(0.0);
         }
-        // In use further up this thread's stack (not the case today): a buffer of its own.
-        Err(_) => f(&mut vec![0.0; len]),
+        f(buf)
     })
 }
-
-/// A value of four bytes for which every bit pattern is valid (the kernels' sums).
-trait Word: Copy {}
-impl Word for f32 {}
-impl Word for i32 {}
 
 /// Run `f` on the calling thread's buffer of `len` values of four bytes, kept from call to call
 /// (it grows to the largest `len` asked for): the values are whatever its last use left, so
 /// `f` writes before it reads. The tiles' sums: an item of PRL-Track's template layer 1 took
 /// 0.67 MB of sums, allocated and zeroed for each of its two channel blocks (0.05 of 1.7 ms).
+/// A buffer of its own, not [`with_padded`]'s: the sums are made while the padded input is in
+/// use.
 fn with_words<T: Word, R>(len: usize, f: impl FnOnce(&mut [T]) -> R) -> R {
-    use std::cell::RefCell;
-    const { assert!(size_of::<T>() == 4 && align_of::<T>() == 4) };
     thread_local! {
-        static BUFFER: RefCell<Vec<u32>> = const { RefCell::new(Vec::new()) };
+        static WORDS: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
     }
-    BUFFER.with(|b| match b.try_borrow_mut() {
-        Ok(mut v) => {
-            if v.len() < len {
-                v.resize(len, 0);
-            }
-            // SAFETY: `T` is four bytes with no invalid bit pattern ([`Word`]: f32, i32), as
-            // aligned as u32; the `len` values are initialised u32s, borrowed mutably here alone.
-            f(unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<T>(), len) })
-        }
-        // In use further up this thread's stack: a buffer of its own.
-        Err(_) => {
-            let mut v = vec![0u32; len];
-            // SAFETY: as above.
-            f(unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<T>(), len) })
-        }
-    })
+    lend(&WORDS, len, f)
 }
 
 /// The runs `(start, len)` of a `len`-long buffer that `write` leaves as they were: what
