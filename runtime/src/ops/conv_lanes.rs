@@ -37,13 +37,10 @@ struct Line<T>([T; L]);
 /// Weights packed for tiles of `16·v` channels: `[block][tap][16·v]` values of 4 bytes (f32
 /// weights, or i32 words of four i8 weights), zero past the last output channel.
 pub(crate) struct Lanes<T> {
-    v: usize,
+    /// The tiles the values are packed for (compact ones run by [`LanePack::run_compact`]).
+    tile: Tile,
     taps: usize,
     co: usize,
-    /// For the compact tiles ([`LanePack::run_compact`]) rather than the wide ones.
-    compact: bool,
-    /// Positions per tile.
-    px: usize,
     lines: Vec<Line<T>>,
 }
 
@@ -57,6 +54,13 @@ pub(crate) struct Tile {
     pub px: usize,
     /// Compact rather than wide.
     pub compact: bool,
+}
+
+impl Tile {
+    /// The wide tile of `v` registers: 48 channels by 8 positions, or `16·v` by 12.
+    pub(crate) fn wide(v: usize) -> Tile {
+        Tile { v, px: wide_tile_positions(v), compact: false }
+    }
 }
 
 /// The f32 weights of [`super::conv::PackedConv`], packed for its channels-in-lanes tiles.
@@ -74,9 +78,10 @@ impl<T: Copy + Default> Lanes<T> {
         }
     }
 
-    /// Pack `taps` taps of `co` channels for `v` registers: `weight(o, tap)`.
-    pub(crate) fn pack(co: usize, taps: usize, v: usize, weight: impl Fn(usize, usize) -> T) -> Lanes<T> {
+    /// Pack `taps` taps of `co` channels for `tile` (its `v` registers): `weight(o, tap)`.
+    pub(crate) fn pack(co: usize, taps: usize, tile: Tile, weight: impl Fn(usize, usize) -> T) -> Lanes<T> {
         assert!(size_of::<T>() == 4, "lines of 16 values of 4 bytes");
+        let v = tile.v;
         let oc = L * v;
         let blocks = co.div_ceil(oc);
         let mut lines = Vec::with_capacity(blocks * taps * v);
@@ -94,17 +99,17 @@ impl<T: Copy + Default> Lanes<T> {
                 }
             }
         }
-        Lanes { v, taps, co, compact: false, px: wide_tile_positions(v), lines }
+        Lanes { tile, taps, co, lines }
     }
 
     /// Channels per tile.
     pub(crate) fn channels(&self) -> usize {
-        L * self.v
+        L * self.tile.v
     }
 
     /// Positions per tile.
     pub(crate) fn positions(&self) -> usize {
-        self.px
+        self.tile.px
     }
 
     /// Output channels and taps packed.
@@ -137,9 +142,7 @@ impl LanePack {
 
     /// Pack OIHW `weight` (`[co][taps]`) for `tile`, keeping the taps `live`.
     pub(crate) fn with_tile(weight: &[f32], taps: usize, live: &[usize], co: usize, tile: Tile) -> LanePack {
-        let mut pack = Lanes::pack(co, live.len(), tile.v, |o, i| weight[o * taps + live[i]]);
-        (pack.compact, pack.px) = (tile.compact, tile.px);
-        pack
+        Lanes::pack(co, live.len(), tile, |o, i| weight[o * taps + live[i]])
     }
 
     /// The tile for a convolution of `shape` on this machine; `None` where
@@ -175,7 +178,7 @@ impl LanePack {
         if co >= L && (shape.ci >= L || cv > 1) && compact * 20 < wide * 19 {
             return Some(Tile { v: cv, px: cpx, compact: true });
         }
-        (v > 1).then_some(Tile { v, px: wide_px, compact: false })
+        (v > 1).then_some(Tile::wide(v))
     }
 
     /// Whether [`super::conv::PackedConv`] runs a convolution of `shape` in the compact tiles
@@ -194,7 +197,7 @@ impl LanePack {
 
     /// Whether the packing is for the compact tiles ([`LanePack::run_compact`]).
     pub(crate) fn compact(&self) -> bool {
-        self.compact
+        self.tile.compact
     }
 
     /// [`LanePack::run`] for a compact packing, followed by `act`: tiles of `16·v` channels by
@@ -203,7 +206,7 @@ impl LanePack {
     /// last position.
     pub(crate) fn run_compact(&self, l: &Layout, padded: &[f32], bias: &[f32], act: Activation, out: &mut [f32]) {
         let (plane, oc, px) = (l.oh * l.ow, self.channels(), self.positions());
-        assert!(self.compact && l.taps.len() == self.taps && plane > 0);
+        assert!(self.tile.compact && l.taps.len() == self.taps && plane > 0);
         assert!(l.taps.iter().all(|&t| t + l.positions() <= padded.len()));
         assert!(out.len() == self.co * plane && bias.len() >= self.co);
         let dst = SyncPtr(out.as_mut_ptr());
@@ -212,7 +215,7 @@ impl LanePack {
                 let weights = self.block(b);
                 #[cfg(target_arch = "x86_64")]
                 let offsets = compact_offsets(l, first * px, count * px);
-                match (self.v, px, crate::isa::f32_kernel()) {
+                match (self.tile.v, px, crate::isa::f32_kernel()) {
                     // SAFETY: the CPU has AVX2 and FMA; every read stays in `padded` (asserted
                     // above: every tap from any output position's offset) and `weights`.
                     #[cfg(target_arch = "x86_64")]
@@ -258,7 +261,7 @@ impl LanePack {
         for_each_item(self.co.div_ceil(oc), l.positions().div_ceil(px), |b, first, count| {
             with_words(count * oc * px, |sums: &mut [f32]| {
                 let weights = self.block(b);
-                match (self.v, crate::isa::f32_kernel()) {
+                match (self.tile.v, crate::isa::f32_kernel()) {
                     // SAFETY: the CPU has AVX-512F; every read stays in `padded` (asserted
                     // above: the last tile's `px` positions from any tap) and `weights`.
                     #[cfg(target_arch = "x86_64")]
@@ -899,8 +902,7 @@ mod tests {
             let weight: Vec<f32> = (0..co * taps).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
             let live: Vec<usize> = (0..taps).collect();
             let v = LanePack::registers_for(co).unwrap();
-            let pack =
-                LanePack::with_tile(&weight, taps, &live, co, Tile { v, px: wide_tile_positions(v), compact: false });
+            let pack = LanePack::with_tile(&weight, taps, &live, co, Tile::wide(v));
             let bias: Vec<f32> = (0..co).map(|o| o as f32 / 8.0).collect();
             let mut got = vec![0f32; co * l.oh * l.ow];
             pack.run(&l, &padded, &bias, Activation::NONE, &mut got);

@@ -11,7 +11,7 @@
 use super::conv_kernel::Layout;
 #[cfg(target_arch = "x86_64")]
 use super::conv_lanes::by_channel_avx512;
-use super::conv_lanes::{for_each_item, places, store_by_channel, Lanes};
+use super::conv_lanes::{for_each_item, places, store_by_channel, Lanes, Tile};
 #[cfg(target_arch = "x86_64")]
 use super::qconv_kernel::requant_lanes;
 use super::qconv_kernel::requant_one;
@@ -49,7 +49,7 @@ impl QLanePack {
         offset: &[i32],
         (scale, exact): (&[f32], bool),
     ) -> QLanePack {
-        let lanes = Lanes::pack(co, groups, v, |o, g| words[o * groups + g]);
+        let lanes = Lanes::pack(co, groups, Tile::wide(v), |o, g| words[o * groups + g]);
         let padded = co.div_ceil(lanes.channels()) * lanes.channels();
         let offset = (0..padded).map(|o| if o < co { offset[o] } else { 0 }).collect();
         let scale = (0..padded).map(|o| if o < co { scale[o] } else { 0.0 }).collect();
