@@ -4,7 +4,8 @@
 //! Every path gives the portable loop's bits: the same unfused operations in the same order,
 //! the max and the sum over sixteen lanes reduced as the portable loop reduces them. The
 //! compiler vectorised the portable loop poorly (on AVX-512 a row of 242 took about 35 cycles a
-//! vector of sixteen); the AVX-512, AVX2 and NEON forms here are written out.
+//! vector of sixteen); the AVX-512, AVX2 and NEON forms here are one body written out over
+//! sixteen lanes ([`softmax_row_lanes`]), in each path's registers.
 
 use crate::isa::F32Kernel;
 
@@ -20,10 +21,7 @@ pub(super) fn softmax_row(r: &mut [f32], scale: Option<f32>) {
         F32Kernel::Avx2Fma => unsafe { softmax_row_avx2(r, scale) },
         // SAFETY: NEON is part of the aarch64 baseline (and the probe found it).
         #[cfg(target_arch = "aarch64")]
-        F32Kernel::Neon => unsafe {
-            scale_row(r, scale);
-            softmax_row_neon(r)
-        },
+        F32Kernel::Neon => unsafe { softmax_row_neon(r, scale) },
         _ => softmax_row_portable(r, scale),
     }
 }
@@ -42,226 +40,216 @@ fn softmax_row_portable(r: &mut [f32], scale: Option<f32>) {
     softmax_row_generic(r)
 }
 
-/// [`softmax_row_portable`] in AVX-512, bit for bit: the sixteen lanes of the portable loop are
-/// one register; the multiply by the scale is in the max pass, the sum in the exponential's.
+/// [`softmax_row_lanes`] on one AVX-512 register.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 unsafe fn softmax_row_avx512(r: &mut [f32], scale: Option<f32>) {
-    use std::arch::x86_64::*;
-    const L: usize = 16;
-    let full = r.len() / L * L;
-    let p = r.as_mut_ptr();
-    let lanes16 = |v: __m512| {
-        let mut lanes = [0f32; L];
-        // SAFETY: sixteen floats into a local array of sixteen.
-        unsafe { _mm512_storeu_ps(lanes.as_mut_ptr(), v) };
-        lanes
-    };
-    // SAFETY (every block below): the loads and stores are at `i..i + 16` with `i + 16 <= full
-    // <= r.len()`.
-    let max = unsafe {
-        let mut m = _mm512_set1_ps(f32::NEG_INFINITY);
-        for i in (0..full).step_by(L) {
-            let mut v = _mm512_loadu_ps(p.add(i));
-            if let Some(s) = scale {
-                v = _mm512_mul_ps(v, _mm512_set1_ps(s));
-                _mm512_storeu_ps(p.add(i), v);
-            }
-            m = _mm512_max_ps(m, v);
-        }
-        scale_row(&mut r[full..], scale);
-        r[full..].iter().chain(&lanes16(m)).fold(f32::NEG_INFINITY, |m, &v| m.max(v))
-    };
-    let sum = unsafe {
-        let mv = _mm512_set1_ps(max);
-        let mut s = _mm512_setzero_ps();
-        for i in (0..full).step_by(L) {
-            let x = _mm512_max_ps(_mm512_sub_ps(_mm512_loadu_ps(p.add(i)), mv), _mm512_set1_ps(EXP_MIN));
-            let n = _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(_mm512_mul_ps(
-                x,
-                _mm512_set1_ps(std::f32::consts::LOG2_E),
-            ));
-            let rr = _mm512_add_ps(
-                _mm512_sub_ps(x, _mm512_mul_ps(n, _mm512_set1_ps(LN2_HI))),
-                _mm512_mul_ps(n, _mm512_set1_ps(LN2_LO)),
-            );
-            let mut q = _mm512_mul_ps(rr, _mm512_set1_ps(1.0 / 720.0));
-            for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0] {
-                q = _mm512_mul_ps(rr, _mm512_add_ps(_mm512_set1_ps(c), q));
-            }
-            let q = _mm512_add_ps(_mm512_set1_ps(1.0), q);
-            let bits = _mm512_slli_epi32::<23>(_mm512_add_epi32(_mm512_cvttps_epi32(n), _mm512_set1_epi32(127)));
-            let e = _mm512_mul_ps(q, _mm512_castsi512_ps(bits));
-            _mm512_storeu_ps(p.add(i), e);
-            s = _mm512_add_ps(s, e);
-        }
-        for v in &mut r[full..] {
-            *v = exp_nonpositive(*v - max);
-        }
-        let sum: f32 = lanes16(s).iter().chain(&r[full..]).sum();
-        sum
-    };
-    let inv = 1.0 / sum;
-    // SAFETY: as above.
-    unsafe {
-        for i in (0..full).step_by(L) {
-            _mm512_storeu_ps(p.add(i), _mm512_mul_ps(_mm512_loadu_ps(p.add(i)), _mm512_set1_ps(inv)));
-        }
-    }
-    r[full..].iter_mut().for_each(|v| *v *= inv);
+    // SAFETY: this function's features are those `Avx512`'s operations use.
+    unsafe { softmax_row_lanes::<lanes::Avx512>(r, scale) }
 }
 
-/// [`softmax_row_avx512`] on AVX2: the sixteen lanes in two registers.
+/// [`softmax_row_lanes`] on two AVX2 registers.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn softmax_row_avx2(r: &mut [f32], scale: Option<f32>) {
-    use std::arch::x86_64::*;
+    // SAFETY: this function's features are those `Avx2`'s operations use.
+    unsafe { softmax_row_lanes::<lanes::Avx2>(r, scale) }
+}
+
+/// [`softmax_row_lanes`] on four NEON registers. The compiler left the portable loop's max
+/// scalar (`fmaxnm` on single lanes) and its exponential four lanes at a time with one chain in
+/// flight; here sixteen lanes go at a time (four independent chains).
+#[cfg(target_arch = "aarch64")]
+#[target_feature(enable = "neon")]
+unsafe fn softmax_row_neon(r: &mut [f32], scale: Option<f32>) {
+    // SAFETY: this function's features are those `Neon`'s operations use.
+    unsafe { softmax_row_lanes::<lanes::Neon>(r, scale) }
+}
+
+/// [`softmax_row_portable`] sixteen lanes at a time in `V`'s registers, bit for bit: the
+/// sixteen lanes of the portable loop's max and sum are `V`'s, the same unfused operations in
+/// the same order; the multiply by the scale is in the max pass, the sum in the exponential's.
+///
+/// # Safety
+/// The CPU has `V`'s instructions (this is inlined into the `#[target_feature]` function of
+/// `V`'s path, so that `V`'s operations inline into it).
+#[inline(always)]
+unsafe fn softmax_row_lanes<V: lanes::Lanes>(r: &mut [f32], scale: Option<f32>) {
     const L: usize = 16;
     let full = r.len() / L * L;
     let p = r.as_mut_ptr();
-    let lanes16 = |v: [__m256; 2]| {
-        let mut lanes = [0f32; L];
-        // SAFETY: eight floats into each half of a local array of sixteen.
-        unsafe {
-            _mm256_storeu_ps(lanes.as_mut_ptr(), v[0]);
-            _mm256_storeu_ps(lanes.as_mut_ptr().add(8), v[1]);
-        }
-        lanes
-    };
-    // SAFETY (every block below): the loads and stores are at `i + 8·h .. i + 8·h + 8`, h < 2,
-    // with `i + 16 <= full <= r.len()`.
+    // SAFETY (every block below): the loads and stores are at `i..i + 16` with `i + 16 <= full
+    // <= r.len()`; the CPU has `V`'s instructions (the caller's promise).
     let max = unsafe {
-        let mut m = [_mm256_set1_ps(f32::NEG_INFINITY); 2];
+        let mut m = V::splat(f32::NEG_INFINITY);
         for i in (0..full).step_by(L) {
-            for (h, m) in m.iter_mut().enumerate() {
-                let mut v = _mm256_loadu_ps(p.add(i + 8 * h));
-                if let Some(s) = scale {
-                    v = _mm256_mul_ps(v, _mm256_set1_ps(s));
-                    _mm256_storeu_ps(p.add(i + 8 * h), v);
-                }
-                *m = _mm256_max_ps(*m, v);
+            let mut v = V::load(p.add(i));
+            if let Some(s) = scale {
+                v = v.mul(V::splat(s));
+                v.store(p.add(i));
             }
+            m = m.max(v);
         }
         scale_row(&mut r[full..], scale);
-        r[full..].iter().chain(&lanes16(m)).fold(f32::NEG_INFINITY, |m, &v| m.max(v))
+        r[full..].iter().chain(&m.lanes()).fold(f32::NEG_INFINITY, |m, &v| m.max(v))
     };
     let sum = unsafe {
-        let mv = _mm256_set1_ps(max);
-        let mut s = [_mm256_setzero_ps(); 2];
+        let mv = V::splat(max);
+        let mut s = V::splat(0.0);
         for i in (0..full).step_by(L) {
-            for (h, s) in s.iter_mut().enumerate() {
-                let x = _mm256_max_ps(_mm256_sub_ps(_mm256_loadu_ps(p.add(i + 8 * h)), mv), _mm256_set1_ps(EXP_MIN));
-                let n = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(_mm256_mul_ps(
-                    x,
-                    _mm256_set1_ps(std::f32::consts::LOG2_E),
-                ));
-                let rr = _mm256_add_ps(
-                    _mm256_sub_ps(x, _mm256_mul_ps(n, _mm256_set1_ps(LN2_HI))),
-                    _mm256_mul_ps(n, _mm256_set1_ps(LN2_LO)),
-                );
-                let mut q = _mm256_mul_ps(rr, _mm256_set1_ps(1.0 / 720.0));
-                for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0] {
-                    q = _mm256_mul_ps(rr, _mm256_add_ps(_mm256_set1_ps(c), q));
-                }
-                let q = _mm256_add_ps(_mm256_set1_ps(1.0), q);
-                let bits = _mm256_slli_epi32::<23>(_mm256_add_epi32(_mm256_cvttps_epi32(n), _mm256_set1_epi32(127)));
-                let e = _mm256_mul_ps(q, _mm256_castsi256_ps(bits));
-                _mm256_storeu_ps(p.add(i + 8 * h), e);
-                *s = _mm256_add_ps(*s, e);
+            // `exp_nonpositive(x − max)`, the same operations in the same order.
+            let x = V::load(p.add(i)).sub(mv).max(V::splat(EXP_MIN));
+            let n = x.mul(V::splat(std::f32::consts::LOG2_E)).round();
+            let rr = x.sub(n.mul(V::splat(LN2_HI))).add(n.mul(V::splat(LN2_LO)));
+            let mut q = rr.mul(V::splat(1.0 / 720.0));
+            for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0] {
+                q = rr.mul(V::splat(c).add(q));
             }
+            let e = V::splat(1.0).add(q).mul(n.exp2());
+            e.store(p.add(i));
+            s = s.add(e);
         }
         for v in &mut r[full..] {
             *v = exp_nonpositive(*v - max);
         }
-        let sum: f32 = lanes16(s).iter().chain(&r[full..]).sum();
+        let sum: f32 = s.lanes().iter().chain(&r[full..]).sum();
         sum
     };
     let inv = 1.0 / sum;
     // SAFETY: as above.
     unsafe {
         for i in (0..full).step_by(L) {
-            for h in 0..2 {
-                let at = p.add(i + 8 * h);
-                _mm256_storeu_ps(at, _mm256_mul_ps(_mm256_loadu_ps(at), _mm256_set1_ps(inv)));
-            }
+            V::load(p.add(i)).mul(V::splat(inv)).store(p.add(i));
         }
     }
     r[full..].iter_mut().for_each(|v| *v *= inv);
 }
 
-/// [`softmax_row_generic`] in NEON intrinsics, bit for bit: the compiler leaves its max loop
-/// scalar (`fmaxnm` on single lanes) and its exponential four lanes at a time with one chain in
-/// flight. Here the max, the exponential and the sum go sixteen lanes at a time (four
-/// independent chains), the exponential and the sum in one pass; the same unfused operations
-/// in the same order, and the lanes reduced as the portable loop reduces them.
-#[cfg(target_arch = "aarch64")]
-#[target_feature(enable = "neon")]
-unsafe fn softmax_row_neon(r: &mut [f32]) {
-    use std::arch::aarch64::*;
-    const L: usize = 16;
-    let full = r.len() / L * L;
-    let p = r.as_mut_ptr();
-    // SAFETY (every block below): the loads and stores are at `i..i + 16` with `i + 16 <= full
-    // <= r.len()`.
-    let max = unsafe {
-        let mut m = [vdupq_n_f32(f32::NEG_INFINITY); 4];
-        for i in (0..full).step_by(L) {
-            for (k, m) in m.iter_mut().enumerate() {
-                *m = vmaxnmq_f32(*m, vld1q_f32(p.add(i + 4 * k)));
-            }
-        }
-        r[full..].iter().chain(&lanes16(m)).fold(f32::NEG_INFINITY, |m, &v| m.max(v))
-    };
-    /// Four registers' lanes in order, as the portable loop's sixteen.
-    #[inline(always)]
-    fn lanes16(v: [float32x4_t; 4]) -> [f32; 16] {
-        let mut lanes = [0f32; 16];
-        for (k, v) in v.iter().enumerate() {
-            // SAFETY: four floats into lanes 4k..4k + 4 of sixteen; NEON is baseline.
-            unsafe { vst1q_f32(lanes.as_mut_ptr().add(4 * k), *v) };
-        }
-        lanes
-    }
-    /// [`exp_nonpositive`] of `x - max` on four lanes, the same operations in the same order.
-    #[inline(always)]
-    unsafe fn exp4(x: float32x4_t, max: float32x4_t) -> float32x4_t {
-        let x = vmaxnmq_f32(vsubq_f32(x, max), vdupq_n_f32(EXP_MIN));
-        let n = vrndnq_f32(vmulq_n_f32(x, std::f32::consts::LOG2_E));
-        let r = vaddq_f32(vsubq_f32(x, vmulq_n_f32(n, LN2_HI)), vmulq_n_f32(n, LN2_LO));
-        let mut q = vmulq_n_f32(r, 1.0 / 720.0);
-        for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0] {
-            q = vmulq_f32(r, vaddq_f32(vdupq_n_f32(c), q));
-        }
-        let q = vaddq_f32(vdupq_n_f32(1.0), q);
-        let two_n = vreinterpretq_f32_s32(vshlq_n_s32::<23>(vaddq_s32(vcvtq_s32_f32(n), vdupq_n_s32(127))));
-        vmulq_f32(q, two_n)
-    }
-    let sum = unsafe {
-        let mv = vdupq_n_f32(max);
-        let mut s = [vdupq_n_f32(0.0); 4];
-        for i in (0..full).step_by(L) {
-            for (k, s) in s.iter_mut().enumerate() {
-                let e = exp4(vld1q_f32(p.add(i + 4 * k)), mv);
-                vst1q_f32(p.add(i + 4 * k), e);
-                *s = vaddq_f32(*s, e);
-            }
-        }
-        for v in &mut r[full..] {
-            *v = exp_nonpositive(*v - max);
-        }
-        let sum: f32 = lanes16(s).iter().chain(&r[full..]).sum();
-        sum
-    };
-    let inv = 1.0 / sum;
-    // SAFETY: as above.
-    unsafe {
-        for i in (0..full).step_by(L) {
-            for k in 0..4 {
-                vst1q_f32(p.add(i + 4 * k), vmulq_n_f32(vld1q_f32(p.add(i + 4 * k)), inv));
-            }
+/// Sixteen f32 lanes in the registers of one path, with the operations the softmax needs.
+mod lanes {
+    /// Sixteen lanes (one AVX-512 register, two AVX2 ones or four NEON ones) and the softmax's
+    /// operations on them, lane by lane, each one instruction of the path per register.
+    ///
+    /// # Safety
+    /// Every method runs the path's instructions: call them only where the CPU has them, from
+    /// within that path's `#[target_feature]` function (where they inline).
+    pub(super) trait Lanes: Copy {
+        /// Every lane `v`.
+        unsafe fn splat(v: f32) -> Self;
+        /// Sixteen values from `p`.
+        unsafe fn load(p: *const f32) -> Self;
+        /// The sixteen lanes to `p`.
+        unsafe fn store(self, p: *mut f32);
+        /// `self + b`.
+        unsafe fn add(self, b: Self) -> Self;
+        /// `self − b`.
+        unsafe fn sub(self, b: Self) -> Self;
+        /// `self · b`.
+        unsafe fn mul(self, b: Self) -> Self;
+        /// The larger of `self` and `b` (the path's max instruction, `self` first).
+        unsafe fn max(self, b: Self) -> Self;
+        /// Rounded to the nearest whole number, ties to even.
+        unsafe fn round(self) -> Self;
+        /// `2^n` for whole numbers `n` (self) in [-126, 127]: the exponent field `n + 127`.
+        unsafe fn exp2(self) -> Self;
+        /// The sixteen lanes in order.
+        #[inline(always)]
+        unsafe fn lanes(self) -> [f32; 16] {
+            let mut lanes = [0f32; 16];
+            // SAFETY: sixteen floats into a local array of sixteen (the caller's CPU promise).
+            unsafe { self.store(lanes.as_mut_ptr()) };
+            lanes
         }
     }
-    r[full..].iter_mut().for_each(|v| *v *= inv);
+
+    /// Implements [`Lanes`] for `$t`, `$n` registers of `$reg` (`$w` lanes each), from the
+    /// path's instructions, one per register for each operation: `binary` ones on `self` and
+    /// `b`, `unary` ones on `self` (an expression of `$x`, one register).
+    macro_rules! lanes {
+        ($t:ident, $reg:ty, $n:literal, $w:literal, $arch:ident, {
+            splat: $splat:ident, load: $load:ident, store: $store:ident,
+            binary: { $($bop:ident: $bf:ident),* $(,)? },
+            unary: { $($uop:ident: |$ux:ident| $uf:expr),* $(,)? } $(,)?
+        }) => {
+            #[derive(Clone, Copy)]
+            pub(super) struct $t([$reg; $n]);
+
+            impl Lanes for $t {
+                #[inline(always)]
+                unsafe fn splat(v: f32) -> Self {
+                    // SAFETY: the trait's contract (the CPU has the path's instructions).
+                    $t([unsafe { std::arch::$arch::$splat(v) }; $n])
+                }
+                #[inline(always)]
+                unsafe fn load(p: *const f32) -> Self {
+                    // SAFETY: as above; `p` holds sixteen values (the caller's).
+                    $t(std::array::from_fn(|k| unsafe { std::arch::$arch::$load(p.add($w * k)) }))
+                }
+                #[inline(always)]
+                unsafe fn store(self, p: *mut f32) {
+                    for (k, v) in self.0.into_iter().enumerate() {
+                        // SAFETY: as above; `p` has room for sixteen values (the caller's).
+                        unsafe { std::arch::$arch::$store(p.add($w * k), v) };
+                    }
+                }
+                $(
+                    #[inline(always)]
+                    unsafe fn $bop(self, b: Self) -> Self {
+                        // SAFETY: the trait's contract.
+                        $t(std::array::from_fn(|k| unsafe { std::arch::$arch::$bf(self.0[k], b.0[k]) }))
+                    }
+                )*
+                $(
+                    #[inline(always)]
+                    unsafe fn $uop(self) -> Self {
+                        #[allow(unused_imports)]
+                        use std::arch::$arch::*;
+                        $t(std::array::from_fn(|k| {
+                            let $ux = self.0[k];
+                            // SAFETY: the trait's contract.
+                            unsafe { $uf }
+                        }))
+                    }
+                )*
+            }
+        };
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    lanes!(Avx512, std::arch::x86_64::__m512, 1, 16, x86_64, {
+        splat: _mm512_set1_ps, load: _mm512_loadu_ps, store: _mm512_storeu_ps,
+        binary: { add: _mm512_add_ps, sub: _mm512_sub_ps, mul: _mm512_mul_ps, max: _mm512_max_ps },
+        unary: {
+            round: |x| _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(x),
+            exp2: |n| _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_add_epi32(
+                _mm512_cvttps_epi32(n),
+                _mm512_set1_epi32(127),
+            ))),
+        },
+    });
+
+    #[cfg(target_arch = "x86_64")]
+    lanes!(Avx2, std::arch::x86_64::__m256, 2, 8, x86_64, {
+        splat: _mm256_set1_ps, load: _mm256_loadu_ps, store: _mm256_storeu_ps,
+        binary: { add: _mm256_add_ps, sub: _mm256_sub_ps, mul: _mm256_mul_ps, max: _mm256_max_ps },
+        unary: {
+            round: |x| _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(x),
+            exp2: |n| _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(
+                _mm256_cvttps_epi32(n),
+                _mm256_set1_epi32(127),
+            ))),
+        },
+    });
+
+    #[cfg(target_arch = "aarch64")]
+    lanes!(Neon, std::arch::aarch64::float32x4_t, 4, 4, aarch64, {
+        splat: vdupq_n_f32, load: vld1q_f32, store: vst1q_f32,
+        binary: { add: vaddq_f32, sub: vsubq_f32, mul: vmulq_f32, max: vmaxnmq_f32 },
+        unary: {
+            round: |x| vrndnq_f32(x),
+            exp2: |n| vreinterpretq_f32_s32(vshlq_n_s32::<23>(vaddq_s32(vcvtq_s32_f32(n), vdupq_n_s32(127)))),
+        },
+    });
 }
 
 #[inline(always)]
