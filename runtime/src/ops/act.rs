@@ -289,13 +289,10 @@ pub(crate) fn tail(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ops::attention::tests::values;
     use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat, PaddingSpec, PoolSpec};
     use tract_nnef::tract_core::ops::math::{max, min};
     use tract_nnef::tract_core::ops::nn::{hard_swish, DataFormat};
-
-    fn values(len: usize, seed: usize) -> Vec<f32> {
-        (0..len).map(|i| (((i + seed) * 7919 % 1000) as f32) / 250.0 - 2.0).collect()
-    }
 
     /// A 3x3 convolution (`groups` 1: a [`super::super::PackedConv`]; `c`: a depthwise one) on
     /// `[1, c, 12, 12]`, then `tail`, run by tract and after `accelerate`; `fused` nodes (with

@@ -348,14 +348,11 @@ pub(crate) fn pointwise(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ops::attention::tests::values;
     use tract_nnef::tract_core::ops::binary::TypedBinOp;
     use tract_nnef::tract_core::ops::einsum::EinSum;
     use tract_nnef::tract_core::ops::math::{add, max, min};
     use tract_nnef::tract_core::ops::nn::hard_swish;
-
-    fn values(len: usize, seed: usize) -> Vec<f32> {
-        (0..len).map(|i| (((i + seed) * 7919 % 1000) as f32) / 250.0 - 2.0).collect()
-    }
 
     /// Every tile path the CPU can run, against sums in f64, for each kind of activation.
     #[test]

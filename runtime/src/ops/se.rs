@@ -366,13 +366,10 @@ pub(crate) fn squeeze_excite(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ops::attention::tests::values;
     use tract_nnef::tract_core::ops::einsum::EinSum;
     use tract_nnef::tract_core::ops::math::{add, max, min, mul};
     use tract_nnef::tract_core::ops::nn::{hard_swish, sigmoid};
-
-    fn values(len: usize, seed: usize) -> Vec<f32> {
-        (0..len).map(|i| (((i + seed) * 7919 % 1000) as f32) / 250.0 - 2.0).collect()
-    }
 
     fn konst(model: &mut TypedModel, name: &str, shape: &[usize], v: &[f32]) -> OutletId {
         model.add_const(name, Tensor::from_shape(shape, v).unwrap()).unwrap()
