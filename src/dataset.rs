@@ -264,27 +264,27 @@ pub fn parse_pysot_json(root: &Path, path: &Path, text: &str) -> Result<Dataset,
     // Python's json writes NaN for absent targets; JSON has no NaN.
     let text = text.replace("NaN", "null");
     let doc: BTreeMap<String, serde_json::Value> =
-        serde_json::from_str(&text).map_err(|e| err(&path, format!("not a pysot dataset JSON: {e}")))?;
+        serde_json::from_str(&text).map_err(|e| err(path, format!("not a pysot dataset JSON: {e}")))?;
     let num = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
     let boxes = |v: &serde_json::Value, what: &str| -> Result<Vec<[f64; 4]>, InputError> {
         v.as_array()
-            .ok_or_else(|| err(&path, format!("{what}: expected a list of boxes")))?
+            .ok_or_else(|| err(path, format!("{what}: expected a list of boxes")))?
             .iter()
             .enumerate()
             .map(|(i, b)| match b.as_array().map(Vec::as_slice) {
                 Some([x, y, w, h]) => Ok([num(x), num(y), num(w), num(h)]),
-                _ => Err(err(&path, format!("{what}[{i}]: expected [x, y, w, h]"))),
+                _ => Err(err(path, format!("{what}[{i}]: expected [x, y, w, h]"))),
             })
             .collect()
     };
     let mut videos = vec![];
     for (name, v) in &doc {
-        let imgs = v["img_names"].as_array().ok_or_else(|| err(&path, format!("{name}: no img_names")))?;
+        let imgs = v["img_names"].as_array().ok_or_else(|| err(path, format!("{name}: no img_names")))?;
         let frames = imgs.iter().map(|p| root.join(p.as_str().unwrap_or_default())).collect();
         let groundtruth = boxes(&v["gt_rect"], &format!("{name}.gt_rect"))?;
         let init = match v["init_rect"].as_array().map(Vec::as_slice) {
             Some([x, y, w, h]) => [num(x), num(y), num(w), num(h)],
-            _ => *groundtruth.first().ok_or_else(|| err(&path, format!("{name}: no boxes")))?,
+            _ => *groundtruth.first().ok_or_else(|| err(path, format!("{name}: no boxes")))?,
         };
         let attributes = v["attr"]
             .as_array()

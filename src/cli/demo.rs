@@ -63,7 +63,7 @@ fn frame(i: usize) -> Frame {
             let (fx, fy) = (x as f64, y as f64);
             let inside = fx >= bx && fx < bx + bw && fy >= by && fy < by + bh;
             let px = if inside {
-                let check = ((fx - bx) as usize / 7 + (fy - by) as usize / 7) % 2 == 0;
+                let check = ((fx - bx) as usize / 7 + (fy - by) as usize / 7).is_multiple_of(2);
                 if check {
                     [240.0, 120.0, 30.0]
                 } else {

@@ -298,6 +298,9 @@ pub fn run(a: EvalArgs) -> anyhow::Result<()> {
 /// A tracker's name, score and curve in a plot.
 type Series = (String, f64, Vec<f64>);
 
+/// A tracker's score and curve for one plot, where its report has them.
+type Plotted<'a> = dyn Fn(&TrackerReport) -> Option<(f64, Vec<f64>)> + 'a;
+
 /// Success, precision and normalised precision plots of the whole dataset (and of each attribute).
 fn write_plots(
     dir: &Path,
@@ -308,7 +311,7 @@ fn write_plots(
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     let sets =
         [(Kind::Success, "success", "Success plots of OPE"), (Kind::Precision, "precision", "Precision plots of OPE")];
-    let curves = |s: &dyn Fn(&TrackerReport) -> Option<(f64, Vec<f64>)>| -> Vec<Series> {
+    let curves = |s: &Plotted<'_>| -> Vec<Series> {
         reports.iter().filter_map(|r| s(r).map(|(score, v)| (r.name.clone(), score, v))).collect()
     };
     let draw = |stem: String, title: String, kind: Kind, data: Vec<Series>| -> anyhow::Result<()> {

@@ -103,14 +103,14 @@ pub(crate) fn hmg(g: &mut Graph, w: &Scope, name: &str, feats: [&Value; 3]) -> R
         let bw = w.pp("blocks").pp(b);
         let bn = |s: &str| n(&format!("blocks.{b}.{s}"));
         let h = layer_norm(g, &bn("norm1"), &x, &bw.pp("norm1"))?;
-        let qkv = linear(g, &bn("attn.qkv"), &h, &bw.pp("attn").pp("qkv"), WIDTH, 3 * WIDTH, true, 1.0)?;
+        let qkv = linear(g, &bn("attn.qkv"), &h, &bw.pp("attn").pp("qkv"), [WIDTH, 3 * WIDTH], true, 1.0)?;
         let a = hierarchical_attention(g, &bn("attn.cross"), &qkv, TOKENS, HEADS, WIDTH / HEADS / 3)?;
-        let a = linear(g, &bn("attn.proj"), &a, &bw.pp("attn").pp("proj"), WIDTH, WIDTH, true, 0.5)?;
+        let a = linear(g, &bn("attn.proj"), &a, &bw.pp("attn").pp("proj"), [WIDTH, WIDTH], true, 0.5)?;
         x = g.add(&bn("attn.residual"), &x, &a)?;
         let h = layer_norm(g, &bn("norm2"), &x, &bw.pp("norm2"))?;
-        let h = linear(g, &bn("mlp.fc1"), &h, &bw.pp("mlp").pp("fc1"), WIDTH, MLP, true, 1.0)?;
+        let h = linear(g, &bn("mlp.fc1"), &h, &bw.pp("mlp").pp("fc1"), [WIDTH, MLP], true, 1.0)?;
         let h = g.gelu(&bn("mlp.gelu"), &h)?;
-        let h = linear(g, &bn("mlp.fc2"), &h, &bw.pp("mlp").pp("fc2"), MLP, WIDTH, true, 0.5)?;
+        let h = linear(g, &bn("mlp.fc2"), &h, &bw.pp("mlp").pp("fc2"), [MLP, WIDTH], true, 0.5)?;
         x = g.add(&bn("mlp.residual"), &x, &h)?;
     }
     // Keep the x5 third, back to NCHW.

@@ -87,13 +87,13 @@ fn folded_conv_bn(g: &mut Graph, spec: &ConvSpec, bn: &Scope, act_scale: f32) ->
     let b = spec.bias(0.0)?;
     let per_out = w.len() / c;
     let mut bias = vec![0f32; c];
-    for o in 0..c {
+    for (o, bias) in bias.iter_mut().enumerate() {
         let inv = gamma.data[o] as f64 / (var.data[o] as f64 + BN_EPS).sqrt();
         for v in &mut w.data[o * per_out..(o + 1) * per_out] {
             *v = (*v as f64 * inv) as f32;
         }
         let b0 = b.as_ref().map_or(0.0, |b| b.data[o] as f64);
-        bias[o] = ((b0 - mean.data[o] as f64) * inv + beta.data[o] as f64) as f32;
+        *bias = ((b0 - mean.data[o] as f64) * inv + beta.data[o] as f64) as f32;
     }
     let folded = format!("+{}", bn.key("").trim_end_matches('.'));
     let w = g.constant(&(spec.conv.key("weight") + &folded), &w)?;
@@ -101,14 +101,14 @@ fn folded_conv_bn(g: &mut Graph, spec: &ConvSpec, bn: &Scope, act_scale: f32) ->
     Ok((w, b))
 }
 
-/// A PyTorch `nn.Linear` (`weight` [out, in], optional `bias`) on the last axis of `x`.
+/// A PyTorch `nn.Linear` (`weight` [out, in], optional `bias`) on the last axis of `x`, from
+/// `cin` to `cout` features.
 pub(crate) fn linear(
     g: &mut Graph,
     name: &str,
     x: &Value,
     w: &Scope,
-    cin: usize,
-    cout: usize,
+    [cin, cout]: [usize; 2],
     bias: bool,
     gain: f32,
 ) -> Result<Value> {
@@ -127,9 +127,9 @@ pub(crate) fn squeeze_excite(g: &mut Graph, name: &str, x: &Value, se: &Scope, c
     let r = c / 16;
     let y = g.global_avg_pool(&format!("{name}.se.pool"), x)?;
     let y = g.reshape(&format!("{name}.se.flat"), &y, &[1, c as i64])?;
-    let y = linear(g, &format!("{name}.se.fc1"), &y, &fc.pp(0), c, r, false, 1.0)?;
+    let y = linear(g, &format!("{name}.se.fc1"), &y, &fc.pp(0), [c, r], false, 1.0)?;
     let y = g.relu(&format!("{name}.se.relu"), &y)?;
-    let y = linear(g, &format!("{name}.se.fc2"), &y, &fc.pp(2), r, c, false, 1.0)?;
+    let y = linear(g, &format!("{name}.se.fc2"), &y, &fc.pp(2), [r, c], false, 1.0)?;
     let y = g.sigmoid(&format!("{name}.se.sigmoid"), &y)?;
     let y = g.reshape(&format!("{name}.se.gate"), &y, &[1, c as i64, 1, 1])?;
     g.mul(name, x, &y)
