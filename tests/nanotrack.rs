@@ -4,6 +4,7 @@
 mod common;
 
 use std::path::Path;
+use std::process::Command;
 
 use prl_runtime::{Family, Plan, TargetState, Tracker};
 use prl_track::occlusion::LostAndFound;
@@ -533,6 +534,50 @@ fn int8_plan_runs_integer_kernels_near_fp32_on_held_out_footage() {
     let tracks = &r["sequences"][0]["plans"];
     assert!(tracks[1]["mean_iou_to_ref"].as_f64().unwrap() > 0.7, "{tracks}");
     assert!(r["plans"][1]["peak_rss_mb"].as_f64().is_some(), "peak memory from the child's JSON");
+}
+
+/// `--depthwise` makes the depthwise layers integer too: each runs as the runtime's
+/// `DepthwiseQConv` where the machine has a path for it, and the plan's outputs are tract's own
+/// integer kernels' bytes (recorded with `PRL_OPS=tract-int8`, replayed at tolerance 0).
+#[test]
+fn depthwise_layers_quantised_give_tract_s_outputs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fp32 = common::nanotrack_plan(tmp.path());
+    let int8 = tmp.path().join("int8-dw");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let (fp32s, b4s, int8s) = (s(&fp32), s(&common::sequence("building4")), s(&int8));
+    common::ok(&common::prl(&[
+        "quantize",
+        "--plan",
+        &fp32s,
+        "--calib",
+        &b4s,
+        "--frames-per-seq",
+        "8",
+        "--min-macs",
+        "1000000",
+        "--min-out-channels",
+        "16",
+        "--depthwise",
+        "--out",
+        &int8s,
+    ]));
+    let plan = Plan::load(&int8).unwrap();
+    let qi = plan.manifest().quantization.as_ref().unwrap();
+    let dw = qi.layers.iter().filter(|l| l.op == "dwconv" && l.decision == prl_runtime::LayerDecision::Int8).count();
+    assert_eq!(dw, 20, "NanoTrack's twenty depthwise layers: {:?}", qi.layers);
+    let made = plan.search_nodes().into_iter().filter(|n| n.op == "DepthwiseQConv").count();
+    assert_eq!(made, 20, "every depthwise layer a DepthwiseQConv");
+    drop(plan);
+    let rec = tmp.path().join("tract-int8");
+    let o = Command::new(env!("CARGO_BIN_EXE_prl"))
+        .args(["bench", "--plan", &int8s, "--runs", "1", "--save-tensors", &s(&rec)])
+        .env("PRL_OPS", "tract-int8")
+        .output()
+        .unwrap();
+    common::ok(&o);
+    let out = common::ok(&common::prl(&["verify", "--plan", &int8s, "--tensors", &s(&rec), "--tolerance", "0"]));
+    assert!(out.contains("cls") && out.contains("loc"), "{out}");
 }
 
 #[test]

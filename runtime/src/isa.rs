@@ -17,6 +17,9 @@ pub struct Isa {
     pub avx512: bool,
     /// x86_64 AVX-512 VNNI (u8 x i8 dot products).
     pub vnni: bool,
+    /// x86_64 AVX-512 VBMI with BW and VL (byte permutes across the register), beside VNNI: the
+    /// integer depthwise convolution builds its words of four taps with them.
+    pub vbmi: bool,
     /// x86_64 AMX-INT8 tiles, granted by the OS.
     pub amx: bool,
     /// aarch64 NEON (Advanced SIMD).
@@ -40,6 +43,7 @@ impl Isa {
             isa.avx2_fma = has!("avx2") && has!("fma");
             isa.avx512 = isa.avx2_fma && has!("avx512f");
             isa.vnni = isa.avx512 && has!("avx512vnni");
+            isa.vbmi = isa.vnni && has!("avx512vbmi") && has!("avx512bw") && has!("avx512vl");
             isa.amx = super::ops::amx_available();
         }
         #[cfg(target_arch = "aarch64")]
@@ -69,6 +73,7 @@ impl Isa {
             avx2_fma: self.avx2_fma && level >= 1,
             avx512: self.avx512 && level >= 2,
             vnni: self.vnni && level >= 3,
+            vbmi: self.vbmi && level >= 3,
             amx: false,
             neon: self.neon && level >= 1,
             dotprod: self.dotprod && level >= 1,
@@ -83,6 +88,7 @@ impl Isa {
             (self.avx2_fma, "AVX2+FMA"),
             (self.avx512, "AVX-512"),
             (self.vnni, "VNNI"),
+            (self.vbmi, "VBMI"),
             (self.amx, "AMX"),
             (self.neon, "NEON"),
             (self.dotprod, "dot product"),
@@ -195,13 +201,14 @@ mod tests {
 
     #[test]
     fn caps_only_take_away() {
-        let all = Isa { avx2_fma: true, avx512: true, vnni: true, amx: true, ..Isa::default() };
+        let all = Isa { avx2_fma: true, avx512: true, vnni: true, vbmi: true, amx: true, ..Isa::default() };
         let g = all.capped("generic").unwrap();
-        assert!(!g.avx2_fma && !g.avx512 && !g.vnni && !g.amx);
+        assert!(!g.avx2_fma && !g.avx512 && !g.vnni && !g.vbmi && !g.amx);
         let a = all.capped("AVX2").unwrap();
-        assert!(a.avx2_fma && !a.avx512 && !a.vnni);
+        assert!(a.avx2_fma && !a.avx512 && !a.vnni && !a.vbmi);
+        assert!(!all.capped("avx512").unwrap().vbmi);
         let v = all.capped("vnni").unwrap();
-        assert!(v.avx512 && v.vnni && !v.amx);
+        assert!(v.avx512 && v.vnni && v.vbmi && !v.amx);
         assert_eq!(all.capped("native"), Some(all));
         assert!(all.capped("sse9").is_none());
         // A cap never adds what the CPU lacks.

@@ -54,9 +54,9 @@ pub use manifest::{
 pub use nnef::nnef;
 pub use ops::{
     accelerate, accelerate_with, own_operators, Accelerated, Attention, AttnMix, AttnScores, Binary, BroadcastBinary,
-    ChannelMaxPool, ConstMatMul, ConvShape, DepthwiseConv, DepthwiseConvHwc, DepthwiseXCorr, DequantizeU8,
-    LayerNormCore, PackedConv, PackedQConv, Permute, PointwiseConv, QuantizeU8, RowSoftmax, SqueezeExcite,
-    WinogradConv,
+    ChannelMaxPool, ConstMatMul, ConvShape, DepthwiseConv, DepthwiseConvHwc, DepthwiseQConv, DepthwiseXCorr,
+    DequantizeU8, LayerNormCore, PackedConv, PackedQConv, Permute, PointwiseConv, QuantizeU8, RowSoftmax,
+    SqueezeExcite, WinogradConv,
 };
 pub use plan::{NodeInfo, NodeTime, Plan, SearchOutput, TemplateFeatures};
 pub use quantization::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};

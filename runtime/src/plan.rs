@@ -244,12 +244,14 @@ impl Plan {
 
     /// Nodes of the optimised search graph that multiply on integers: tract's i32 matrix
     /// kernels (`mmm_i32` in their description: `avx512vnni_mmm_i32_16x16`,
-    /// `arm64simd_mmm_i32_8x8_dot`, ...) or the runtime's u8 x i8 convolution. Empty for an fp32
+    /// `arm64simd_mmm_i32_8x8_dot`, ...) or the runtime's u8 x i8 convolutions (depthwise ones too). Empty for an fp32
     /// plan; an int8 plan's integer layers where the machine runs them as integers.
     pub fn integer_nodes(&self) -> Vec<NodeInfo> {
         self.search_nodes()
             .into_iter()
-            .filter(|n| (n.op == "OptMatMul" && n.info.contains("mmm_i32")) || n.op == "PackedQConv")
+            .filter(|n| {
+                (n.op == "OptMatMul" && n.info.contains("mmm_i32")) || n.op == "PackedQConv" || n.op == "DepthwiseQConv"
+            })
             .collect()
     }
 

@@ -63,6 +63,10 @@ pub struct QuantizeArgs {
     /// f32 today, since both sides are quantised every frame.
     #[arg(long)]
     act_matmul: bool,
+    /// Also quantise depthwise convolutions (MobileNet's, as in NanoTrack), whatever their
+    /// multiply-adds: their input and output then stay u8.
+    #[arg(long)]
+    depthwise: bool,
     /// Seed of the calibration crops' jitter.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -123,6 +127,7 @@ pub fn run(a: QuantizeArgs) -> anyhow::Result<()> {
         min_macs: a.min_macs,
         min_out_channels: a.min_out_channels,
         act_matmul: a.act_matmul,
+        depthwise: a.depthwise,
         ..QuantizeOptions::default()
     };
     let bar = super::progress_bar(0, "");

@@ -40,6 +40,8 @@ pub struct Candidate {
     /// The graph multiplies by the weight's transpose (a linear layer's `Transpose` of a
     /// PyTorch `[out, in]` weight).
     pub transposed: bool,
+    /// A depthwise convolution (one group per channel, weights `[c, 1, kh, kw]`).
+    pub depthwise: bool,
 }
 
 impl Candidate {
@@ -57,7 +59,8 @@ impl Candidate {
     }
 }
 
-/// The nodes of `model`'s graph that can become integer operators.
+/// The nodes of `model`'s graph that can become integer operators (depthwise convolutions
+/// among them: [`Candidate::depthwise`]).
 pub fn candidates(graph: &pb::GraphProto) -> Vec<Candidate> {
     let inits: HashMap<&str, &pb::TensorProto> = graph.initializer.iter().map(|t| (t.name.as_str(), t)).collect();
     let outputs: HashSet<&str> = graph.output.iter().map(|o| o.name.as_str()).collect();
@@ -94,13 +97,15 @@ pub fn candidates(graph: &pb::GraphProto) -> Vec<Candidate> {
                     relu_after_pool: false,
                     weight: wname.clone(),
                     transposed: false,
+                    depthwise: false,
                 });
                 continue;
             }
             _ => continue,
         };
+        let depthwise = w.dims.len() == 4 && w.dims[1] == 1 && group(n) > 1 && group(n) == w.dims[0];
         let kind = match n.op_type.as_str() {
-            "Conv" if group(n) == 1 && w.dims.len() == 4 => Kind::Conv,
+            "Conv" if (group(n) == 1 || depthwise) && w.dims.len() == 4 => Kind::Conv,
             "MatMul" if w.dims.len() == 2 => Kind::MatMul,
             _ => continue,
         };
@@ -120,6 +125,7 @@ pub fn candidates(graph: &pb::GraphProto) -> Vec<Candidate> {
             relu_after_pool,
             weight: w.name.clone(),
             transposed,
+            depthwise,
         });
     }
     found

@@ -89,6 +89,10 @@ pub struct QuantizeOptions {
     pub min_out_channels: usize,
     /// Also quantise products of two activations (HMG's attention).
     pub act_matmul: bool,
+    /// Also quantise depthwise convolutions (MobileNet's; one group per channel), whatever
+    /// their multiply-adds (few per byte they move: what int8 saves there is memory and the
+    /// dequantisation of their input, not arithmetic).
+    pub depthwise: bool,
     /// Calibration crops the sensitivity pass measures on.
     pub sensitivity_crops: usize,
 }
@@ -103,6 +107,7 @@ impl Default for QuantizeOptions {
             min_macs: 4_000_000,
             min_out_channels: 64,
             act_matmul: false,
+            depthwise: false,
             sensitivity_crops: 8,
         }
     }
@@ -121,7 +126,7 @@ pub fn quantize(
     if graph.node.iter().any(|n| n.op_type.starts_with("QLinear")) {
         return Err(Error::Quantize("the model is already quantised (its search graph has QLinear operators)".into()));
     }
-    let cands = candidates(graph);
+    let cands: Vec<Candidate> = candidates(graph).into_iter().filter(|c| opts.depthwise || !c.depthwise).collect();
     for name in &opts.keep_fp32 {
         if !cands.iter().any(|c| &c.node == name) {
             let names: Vec<&str> = cands.iter().map(|c| c.node.as_str()).collect();
@@ -165,7 +170,7 @@ pub fn quantize(
         let out_channels = (c.kind == Kind::Conv).then(|| stats.shapes[&c.output][1]);
         let decision = if opts.keep_fp32.contains(&c.node) {
             LayerDecision::KeptByUser
-        } else if macs < opts.min_macs {
+        } else if macs < opts.min_macs && !c.depthwise {
             LayerDecision::TooSmall
         } else if out_channels.is_some_and(|n| n < opts.min_out_channels) {
             LayerDecision::FewChannels
@@ -177,6 +182,7 @@ pub fn quantize(
         layers.push(QuantLayer {
             node: c.node.clone(),
             op: match c.kind {
+                Kind::Conv if c.depthwise => "dwconv",
                 Kind::Conv => "conv",
                 Kind::MatMul => "matmul",
                 Kind::ActMatMul => "act-matmul",

@@ -2,7 +2,8 @@
 //! here, put in by [`accelerate`] when a graph is loaded: the correlations with the template
 //! ([`DepthwiseXCorr`]), convolutions ([`PackedConv`], stride 1 or 2, and [`DepthwiseConv`] for
 //! depthwise ones with constant weights, and [`PackedQConv`] for int8
-//! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some, or aarch64's dot product), max pooling
+//! plans on CPUs with AVX-512 VNNI, on AMX tiles where there are some, or aarch64's dot product,
+//! and [`DepthwiseQConv`] for their depthwise layers), max pooling
 //! ([`ChannelMaxPool`]), pointwise convolutions with their bias and activation ([`PointwiseConv`]), HMG's attention ([`Attention`], fused; or [`AttnScores`], [`AttnMix`], [`RowSoftmax`]), layer
 //! norms ([`LayerNormCore`]), linear layers ([`ConstMatMul`]) and broadcast products and sums
 //! ([`BroadcastBinary`]), squeeze-excitation blocks ([`SqueezeExcite`]), and int8 plans' quantisation of activations
@@ -19,6 +20,7 @@ mod conv_kernel;
 mod conv_lanes;
 mod dwconv;
 mod dwconv_hwc;
+mod dwqconv;
 mod matmul;
 mod norm;
 mod permute;
@@ -41,6 +43,7 @@ pub use binary::{Binary, BroadcastBinary};
 pub use conv::{ConvShape, PackedConv};
 pub use dwconv::DepthwiseConv;
 pub use dwconv_hwc::DepthwiseConvHwc;
+pub use dwqconv::DepthwiseQConv;
 pub use matmul::ConstMatMul;
 pub use norm::LayerNormCore;
 pub use permute::Permute;
@@ -86,7 +89,8 @@ pub struct Accelerated {
     pub depthwise: usize,
     /// Max pools made [`ChannelMaxPool`].
     pub pools: usize,
-    /// Quantised (u8 x i8) convolutions made [`PackedQConv`].
+    /// Quantised (u8 x i8) convolutions made [`PackedQConv`] (or [`DepthwiseQConv`], one group
+    /// per channel).
     pub int8_convolutions: usize,
     /// Attentions (scores, scale, softmax and mix) made [`Attention`]; products and
     /// softmaxes outside such a chain made [`AttnScores`], [`AttnMix`], [`RowSoftmax`].
@@ -156,6 +160,9 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
                 done.depthwise += 1;
                 (Box::new(op), tvec![node.inputs[0]])
             } else if let Some(op) = qconv::packed_q(model, node)? {
+                done.int8_convolutions += 1;
+                (Box::new(op), tvec![past_plain_cast(model, node.inputs[0])?])
+            } else if let Some(op) = dwqconv::depthwise_q(model, node)? {
                 done.int8_convolutions += 1;
                 (Box::new(op), tvec![past_plain_cast(model, node.inputs[0])?])
             } else if let Some(op) = pool::channel_max_pool(model, node)? {
@@ -481,6 +488,8 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         "PackedQConv" if info.contains("on AMX") => "amx".to_string(),
         "PackedQConv" if info.contains("VNNI") => "vnni".to_string(),
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
+        "DepthwiseQConv" if info.contains("VNNI") => "vnni".to_string(),
+        "DepthwiseQConv" => format!("{} (exact sums)", crate::isa::f32_kernel().name()),
         // 3 x 3 windows of stride 2 in AVX-512 for f32 (u8 as below).
         "ChannelMaxPool"
             if info.contains("3x3 window, stride 2") && crate::isa::f32_kernel() == crate::isa::F32Kernel::Avx512 =>

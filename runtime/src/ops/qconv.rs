@@ -636,7 +636,7 @@ fn has_words_path() -> bool {
 }
 
 /// A scalar (or a vector of `n`) constant as f32 / i32 values.
-fn konst_values<T: Datum + Copy>(fact: &TypedFact, n: usize) -> TractResult<Option<Vec<T>>> {
+pub(super) fn konst_values<T: Datum + Copy>(fact: &TypedFact, n: usize) -> TractResult<Option<Vec<T>>> {
     let Some(k) = &fact.konst else { return Ok(None) };
     let k = k.cast_to::<T>()?;
     let k = k.try_as_plain_ram()?;
@@ -712,7 +712,7 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
 
 /// The largest magnitude a layer's sums `Σ (x − x0)·w[o] + bias[o]` can take (`|x − x0| ≤
 /// 255`), from its weights (`taps` per output channel) and biases.
-fn sum_bound(kernel: &[i8], bias: &[i32], taps: usize) -> i64 {
+pub(super) fn sum_bound(kernel: &[i8], bias: &[i32], taps: usize) -> i64 {
     let row = |(w, &b): (&[i8], &i32)| 255 * w.iter().map(|&v| (v as i64).abs()).sum::<i64>() + (b as i64).abs();
     kernel.chunks(taps.max(1)).zip(bias).map(row).max().unwrap_or(0)
 }

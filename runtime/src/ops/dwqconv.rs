@@ -1,0 +1,605 @@
+//! Depthwise convolutions on u8 data (tract's quantised `Conv` with one group per channel, which
+//! `QLinearConv` with `group = C` becomes: MobileNet's 3x3 and 5x5 layers in an int8 plan made
+//! with `prl quantize --depthwise`) as [`DepthwiseQConv`].
+//!
+//! tract runs these as an im2col and an integer matrix product per channel: NanoTrack's twenty
+//! depthwise layers took 95 ms of a 107 ms search step that way. Here, on AVX-512 VNNI with
+//! VBMI, every output row is a sum over the kernel's rows of `vpdpbusd`s: one `vpermb` makes
+//! sixteen words of four consecutive input bytes (a kernel row's taps `4g .. 4g + 4` for sixteen
+//! output columns, strided by 2 for stride 2) from one 64-byte load of the padded plane, and
+//! `vpdpbusd` multiplies them by that kernel row's four i8 weights (zero past the kernel's
+//! width) into sixteen i32 sums; the padding holds the input zero point and `x0·Σw` comes off
+//! with the bias, so the sums are exactly `Σ (x − x0)·w`. They are requantised in registers as
+//! [`super::PackedQConv`] requantises (tract's rounding). Elsewhere the same exact sums come
+//! from the float depthwise kernel of every other CPU ([`DepthwiseConv`] on `x − x0` and the
+//! integer weights: every product and partial sum is an integer under 2^24, so exact in f32),
+//! requantised by the same code: the same bytes on every path.
+
+use std::sync::Arc;
+
+use tract_nnef::internal::*;
+use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
+use tract_nnef::tract_core::ops::nn::DataFormat;
+
+use super::conv::ConvShape;
+use super::dwconv::DepthwiseConv;
+use super::qconv::{konst_values, sum_bound};
+use super::qconv_kernel::{exact_fits, requant_one};
+use super::quant::DequantizeU8;
+use super::{all_ones, output_tensor_written, pads_2d};
+#[cfg(target_arch = "x86_64")]
+use super::{par_chunks, serial_if_small, SERIAL_MACS};
+
+/// Output columns a register holds (16 i32 lanes).
+#[cfg(target_arch = "x86_64")]
+const LANES: usize = 16;
+/// Bytes past a padded plane's end that a 64-byte load from its last column may reach.
+#[cfg(target_arch = "x86_64")]
+const SLACK: usize = 64;
+
+/// `y[n,c,oy,ox] = sat_u8(round((Σ_{i,j} (pad(x)[n,c,s·oy+i,s·ox+j] − x0)·w[c,i,j] + bias[c]) ·
+/// scale[c]) + y0)`, `pad` with the zero point `x0`, stride `s` 1 or 2: a depthwise
+/// convolution of u8 data with constant i8 weights (zero point 0) and i32 bias.
+#[derive(Clone)]
+pub struct DepthwiseQConv {
+    /// `ci == co` channels; the kernel is `kh` x `kw`.
+    shape: ConvShape,
+    /// The data has a batch axis (NCHW); else it is CHW (tract drops a batch axis of 1).
+    batch: bool,
+    /// Per channel, `kh · groups` words: kernel row `i`'s taps `4g .. 4g + 4` as four i8 (zero
+    /// past the kernel's width), `groups = ⌈kw / 4⌉`.
+    words: Arc<Vec<i32>>,
+    /// Per channel `bias − x0·Σw`: what the VNNI path's sums of raw bytes need added.
+    offset: Arc<Vec<i32>>,
+    /// Per channel: what the portable path's sums of `x − x0` need added.
+    bias: Arc<Vec<i32>>,
+    /// Per channel `x_scale · w_scale / y_scale`.
+    scale: Arc<Vec<f32>>,
+    /// One scale for every channel: tract's exact fixed-point product ([`requant_one`]).
+    exact: bool,
+    x0: u8,
+    y0: u8,
+    /// The output's datum type (u8 with its quantisation parameters).
+    out_dt: DatumType,
+    /// The portable path: the float kernel on `x − x0` with the integer weights, bias 0.
+    float: DepthwiseConv,
+}
+
+impl std::fmt::Debug for DepthwiseQConv {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "DepthwiseQConv({:?})", self.shape)
+    }
+}
+
+impl PartialEq for DepthwiseQConv {
+    fn eq(&self, other: &Self) -> bool {
+        self.shape == other.shape
+            && self.batch == other.batch
+            && self.words == other.words
+            && self.offset == other.offset
+            && self.bias == other.bias
+            && super::same_bits(&self.scale, &other.scale)
+            && (self.exact, self.x0, self.y0, self.out_dt) == (other.exact, other.x0, other.y0, other.out_dt)
+    }
+}
+
+impl Eq for DepthwiseQConv {}
+
+impl DepthwiseQConv {
+    /// The convolution of `shape` (`ci == co`, stride 1 or 2) with i8 `kernel` `[c, 1, kh, kw]`,
+    /// i32 `bias` (one per channel), input zero point `x0`, per-channel `scale`s (`x_scale ·
+    /// w_scale / y_scale`), output zero point `y0` and datum type `out_dt`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn new(
+        shape: ConvShape,
+        batch: bool,
+        kernel: &[i8],
+        bias: &[i32],
+        (x0, scale, y0): (u8, &[f32], u8),
+        out_dt: DatumType,
+    ) -> TractResult<DepthwiseQConv> {
+        let (c, kh, kw) = (shape.ci, shape.kh, shape.kw);
+        ensure!(shape.co == c && matches!(shape.stride, 1 | 2), "DepthwiseQConv: shape {shape:?}");
+        ensure!(
+            kernel.len() == c * kh * kw && bias.len() == c && scale.len() == c,
+            "DepthwiseQConv: parameters for {shape:?}"
+        );
+        let groups = kw.div_ceil(4);
+        let mut words = vec![0i32; c * kh * groups];
+        let mut offset = vec![0i32; c];
+        for ch in 0..c {
+            let taps = &kernel[ch * kh * kw..(ch + 1) * kh * kw];
+            for i in 0..kh {
+                for g in 0..groups {
+                    let mut b = [0u8; 4];
+                    for (t, b) in b.iter_mut().enumerate().take(kw.saturating_sub(4 * g)) {
+                        *b = taps[i * kw + 4 * g + t] as u8;
+                    }
+                    words[(ch * kh + i) * groups + g] = i32::from_le_bytes(b);
+                }
+            }
+            let sum: i32 = taps.iter().map(|&w| w as i32).sum();
+            offset[ch] = bias[ch] - x0 as i32 * sum;
+        }
+        let exact = scale.iter().all(|v| v.to_bits() == scale[0].to_bits());
+        let weights: Vec<f32> = kernel.iter().map(|&w| w as f32).collect();
+        let float =
+            DepthwiseConv::new(shape.clone(), batch, &weights, &[0.0])?.reading(DequantizeU8::new(1.0, x0 as i32));
+        Ok(DepthwiseQConv {
+            shape,
+            batch,
+            words: Arc::new(words),
+            offset: Arc::new(offset),
+            bias: Arc::new(bias.to_vec()),
+            scale: Arc::new(scale.to_vec()),
+            exact,
+            x0,
+            y0,
+            out_dt,
+            float,
+        })
+    }
+
+    /// Whether the VNNI path runs here ([`crate::isa`]).
+    fn vnni() -> bool {
+        let isa = crate::isa();
+        isa.vnni && isa.vbmi
+    }
+
+    /// The padded plane's rows and row length (no phases: the byte permute takes every second
+    /// byte for stride 2), with [`SLACK`] bytes after it.
+    #[cfg(target_arch = "x86_64")]
+    fn padded_len(&self) -> usize {
+        let (hp, wp) = self.shape.padded();
+        hp * wp + SLACK
+    }
+
+    /// Channel `ch` of one image on VNNI: `src` (`[h, w]` bytes) into `dst` (`[oh, ow]`), with
+    /// `pad` ([`Self::padded_len`] bytes whose borders hold `x0`).
+    #[cfg(target_arch = "x86_64")]
+    fn channel_vnni(&self, ch: usize, src: &[u8], pad: &mut [u8], dst: &mut [u8]) {
+        let s = &self.shape;
+        let per = s.kh * s.kw.div_ceil(4);
+        let words = &self.words[ch * per..(ch + 1) * per];
+        let q = (self.offset[ch], self.scale[ch], self.exact, self.y0);
+        let (oh, ow) = s.out();
+        assert!(
+            src.len() == s.h * s.w && pad.len() >= self.padded_len() && dst.len() == oh * ow,
+            "planes of the shape"
+        );
+        // SAFETY: the CPU has AVX-512F, BW, VL, VNNI and VBMI ([`Self::vnni`]); `src`, `pad`
+        // (the padded plane and its slack) and `dst` are the planes of the shape (asserted).
+        unsafe {
+            vnni::copy_rows(s, src, pad);
+            vnni::plane(s, pad, words, q, dst)
+        }
+    }
+}
+
+/// The VNNI kernel.
+#[cfg(target_arch = "x86_64")]
+mod vnni {
+    use std::arch::x86_64::*;
+
+    use super::super::conv::ConvShape;
+    use super::super::qconv_kernel::requant_lanes;
+    use super::LANES;
+
+    /// The byte permutes that make sixteen words of four consecutive input bytes, for stride 1
+    /// and 2: word `l`'s byte `t` is the input `l·s + t` bytes on.
+    const PERMUTE: [[u8; 64]; 2] = {
+        let mut p = [[0u8; 64]; 2];
+        let mut b = 0;
+        while b < 64 {
+            p[0][b] = (b / 4 + b % 4) as u8;
+            p[1][b] = ((b / 4) * 2 + b % 4) as u8;
+            b += 1;
+        }
+        p
+    };
+
+    /// `src` (`[h, w]` bytes) into the interior of the padded plane `pad`, 64 bytes at a time
+    /// (a row of a few dozen bytes is not worth a call to `memcpy`).
+    ///
+    /// # Safety
+    /// The CPU has AVX-512F and BW; `src` is `h · w` bytes and `pad` the padded plane of `s`.
+    #[target_feature(enable = "avx512f,avx512bw")]
+    pub(super) unsafe fn copy_rows(s: &ConvShape, src: &[u8], pad: &mut [u8]) {
+        let (_, wp) = s.padded();
+        for (y, row) in src.chunks_exact(s.w).enumerate() {
+            let at = (y + s.pad[0]) * wp + s.pad[1];
+            let to = &mut pad[at..at + s.w];
+            let mut x = 0;
+            while x < s.w {
+                let n = (s.w - x).min(64);
+                let keep: u64 = if n == 64 { u64::MAX } else { (1u64 << n) - 1 };
+                // SAFETY: `n` bytes from `x` on within `row` and within `to`.
+                unsafe {
+                    let v = _mm512_maskz_loadu_epi8(keep, row.as_ptr().add(x).cast());
+                    _mm512_mask_storeu_epi8(to.as_mut_ptr().add(x).cast(), keep, v);
+                }
+                x += n;
+            }
+        }
+    }
+
+    /// Every output row of one channel: `pad` the padded plane (`[hp, wp]` bytes and slack),
+    /// `words` the kernel's words (`kh` rows of `⌈kw / 4⌉`), `(offset, scale, exact, y0)` the
+    /// requantisation, `dst` the `[oh, ow]` output bytes.
+    ///
+    /// # Safety
+    /// The CPU has AVX-512F, BW, VL, VNNI and VBMI; `pad` is the padded plane of `s` with
+    /// [`super::SLACK`] bytes after it, `dst` is `oh · ow` bytes.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vnni,avx512vbmi")]
+    pub(super) unsafe fn plane(s: &ConvShape, pad: &[u8], words: &[i32], q: (i32, f32, bool, u8), dst: &mut [u8]) {
+        let (oh, ow) = s.out();
+        // Word `l`'s byte `t` is the input `l·s + t` bytes on.
+        let idx = if s.stride == 1 { &PERMUTE[0] } else { &PERMUTE[1] };
+        // SAFETY: 64 bytes.
+        let idx = unsafe { _mm512_loadu_si512(idx.as_ptr().cast()) };
+        let mut y = 0;
+        while y + 4 <= oh {
+            // SAFETY: as the caller guarantees, for rows `y .. y + 4`.
+            unsafe { rows::<4>(s, pad, words, q, dst, y, idx) };
+            y += 4;
+        }
+        while y < oh {
+            // SAFETY: as above, for row `y`.
+            unsafe { rows::<1>(s, pad, words, q, dst, y, idx) };
+            y += 1;
+        }
+        debug_assert_eq!(dst.len(), oh * ow);
+    }
+
+    /// Output rows `y .. y + R`, sixteen columns at a time: `R` independent sums, so that the
+    /// dot products' latency overlaps.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx512vnni,avx512vbmi")]
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn rows<const R: usize>(
+        s: &ConvShape,
+        pad: &[u8],
+        words: &[i32],
+        (offset, scale, exact, y0): (i32, f32, bool, u8),
+        dst: &mut [u8],
+        y: usize,
+        idx: __m512i,
+    ) {
+        let (_, ow) = s.out();
+        let (_, wp) = s.padded();
+        let (kh, groups, st) = (s.kh, s.kw.div_ceil(4), s.stride);
+        let (off, sc) = (_mm512_set1_epi32(offset), _mm512_set1_ps(scale));
+        let base = pad.as_ptr();
+        let mut x0 = 0;
+        while x0 < ow {
+            let n = (ow - x0).min(LANES);
+            let mut acc = [_mm512_setzero_si512(); R];
+            for i in 0..kh {
+                for g in 0..groups {
+                    let w = _mm512_set1_epi32(words[i * groups + g]);
+                    for (r, acc) in acc.iter_mut().enumerate() {
+                        let at = ((y + r) * st + i) * wp + x0 * st + 4 * g;
+                        // SAFETY: `at` is a position of the padded plane (a row within its
+                        // `hp` rows); the 64 bytes from it are within the plane and its slack.
+                        let v = unsafe { _mm512_loadu_si512(base.add(at).cast()) };
+                        *acc = _mm512_dpbusd_epi32(*acc, _mm512_permutexvar_epi8(idx, v), w);
+                    }
+                }
+            }
+            let keep = if n == LANES { u16::MAX } else { (1u16 << n) - 1 };
+            for (r, acc) in acc.iter().enumerate() {
+                let bytes = _mm512_cvtepi32_epi8(requant_lanes(*acc, off, sc, exact, y0));
+                let o = &mut dst[(y + r) * ow + x0..(y + r) * ow + x0 + n];
+                // SAFETY: `n` bytes within `dst` (the slice above).
+                unsafe { _mm_mask_storeu_epi8(o.as_mut_ptr().cast(), keep, bytes) };
+            }
+            x0 += n;
+        }
+    }
+}
+
+impl Op for DepthwiseQConv {
+    fn name(&self) -> StaticName {
+        "DepthwiseQConv".into()
+    }
+
+    fn info(&self) -> TractResult<Vec<String>> {
+        let s = &self.shape;
+        let path = if Self::vnni() { "AVX-512 VNNI" } else { "the float kernel's exact sums" };
+        let scale = if self.exact { "one scale, exact product" } else { "per-channel scales" };
+        Ok(vec![format!(
+            "{}x{} kernel, stride {}, {} channels, pad {:?}, u8 x i8 on {path}, {scale}",
+            s.kh, s.kw, s.stride, s.ci, s.pad
+        )])
+    }
+
+    op_as_typed_op!();
+}
+
+impl EvalOp for DepthwiseQConv {
+    op_out_of_plan!();
+
+    fn eval(&self, ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
+        let input = args_1!(inputs);
+        Ok(tvec!(self.run(ctx, input, Self::vnni())?.into_tvalue()))
+    }
+}
+
+impl DepthwiseQConv {
+    /// The output for `input`, on VNNI (`vnni`) or through the float kernel.
+    fn run(&self, ctx: &EvalContext, input: TValue, vnni: bool) -> TractResult<Tensor> {
+        let s = &self.shape;
+        let (n, c, h, w) = match (self.batch, input.shape()) {
+            (true, &[n, c, h, w]) => (n, c, h, w),
+            (false, &[c, h, w]) => (1, c, h, w),
+            _ => bail!("DepthwiseQConv: input {:?} for {s:?}", input.shape()),
+        };
+        ensure!((c, h, w) == (s.ci, s.h, s.w), "DepthwiseQConv: input {:?} for {s:?}", input.shape());
+        ensure!(input.datum_type().unquantized() == u8::datum_type(), "DepthwiseQConv: input is not u8");
+        let (oh, ow) = s.out();
+        let shape: TVec<usize> = if self.batch { tvec![n, c, oh, ow] } else { tvec![c, oh, ow] };
+        let plane = oh * ow;
+        let mut out = if vnni {
+            self.run_vnni(&input, &shape)?
+        } else {
+            // The float kernel's sums (exact integers), requantised plane by plane.
+            let sums = self.float.eval(ctx, tvec![input])?.remove(0);
+            let sums = sums.try_as_plain_ram()?;
+            let sums = sums.as_slice::<f32>()?;
+            // SAFETY: every plane of the output is requantised whole.
+            unsafe {
+                output_tensor_written(&shape, |out: &mut [u8]| {
+                    let mut ints = vec![0i32; plane];
+                    for (p, (o, f)) in out.chunks_exact_mut(plane).zip(sums.chunks_exact(plane)).enumerate() {
+                        ints.iter_mut().zip(f).for_each(|(i, &f)| *i = f as i32);
+                        requantise(&ints, self.bias[p % c], self.scale[p % c], self.exact, self.y0, o);
+                    }
+                    Ok(())
+                })?
+            }
+        };
+        // SAFETY: same storage type (u8), the output fact's quantisation parameters.
+        unsafe { out.set_datum_type(self.out_dt) };
+        Ok(out)
+    }
+
+    /// [`EvalOp::eval`] on VNNI: channels in groups of about `SERIAL_MACS / 8` multiply-adds
+    /// over tract's threads, each group with one padded plane (its borders `x0`).
+    #[cfg(target_arch = "x86_64")]
+    fn run_vnni(&self, input: &Tensor, shape: &[usize]) -> TractResult<Tensor> {
+        let s = &self.shape;
+        let c = s.ci;
+        let input = input.try_as_plain_ram()?;
+        // SAFETY: the datum type is u8, possibly with quantisation parameters (checked).
+        let input = unsafe { input.as_slice_unchecked::<u8>() };
+        let (oh, ow) = s.out();
+        let (plane, in_plane) = (oh * ow, s.h * s.w);
+        let images = input.len() / (c * in_plane);
+        let macs = plane * s.kh * s.kw;
+        let group = (SERIAL_MACS / 8 / macs.max(1)).clamp(1, images * c);
+        // SAFETY: every plane of every group is written whole.
+        serial_if_small(images * c * macs, || unsafe {
+            output_tensor_written(shape, |out: &mut [u8]| {
+                par_chunks(out, group * plane, |g, dst| {
+                    let mut pad = vec![self.x0; self.padded_len()];
+                    for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                        let p = g * group + k;
+                        self.channel_vnni(p % c, &input[p * in_plane..(p + 1) * in_plane], &mut pad, d);
+                    }
+                });
+                Ok(())
+            })
+        })
+    }
+
+    /// No VNNI off x86_64 ([`Self::vnni`] is false there).
+    #[cfg(not(target_arch = "x86_64"))]
+    fn run_vnni(&self, _: &Tensor, _: &[usize]) -> TractResult<Tensor> {
+        bail!("DepthwiseQConv: VNNI is x86_64's")
+    }
+}
+
+/// `out[i] = requant_one(sums[i] + offset, ...)`: the vector form where [`crate::isa`] allows
+/// it (AVX2 on x86, NEON on aarch64), else the scalar one.
+fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
+    let vector = cfg!(target_arch = "aarch64") || crate::isa().avx2_fma;
+    if vector {
+        // SAFETY: on x86 the CPU has AVX2 and FMA (checked above); aarch64's form needs nothing.
+        unsafe { super::qconv_kernel::requantise(sums, offset, scale, exact, y0, out) };
+    } else {
+        for (o, &v) in out.iter_mut().zip(sums) {
+            *o = requant_one(v + offset, scale, exact, y0);
+        }
+    }
+}
+
+impl TypedOp for DepthwiseQConv {
+    fn output_facts(&self, inputs: &[&TypedFact]) -> TractResult<TVec<TypedFact>> {
+        let (oh, ow) = self.shape.out();
+        let (c, oh, ow): (TDim, TDim, TDim) = (self.shape.co.into(), oh.into(), ow.into());
+        let shape: TVec<TDim> =
+            if self.batch { tvec![inputs[0].shape[0].clone(), c, oh, ow] } else { tvec![c, oh, ow] };
+        Ok(tvec!(self.out_dt.fact(shape)))
+    }
+
+    fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
+        let (oh, ow) = self.shape.out();
+        let s = &self.shape;
+        let n = if self.batch { inputs[0].shape[0].clone() } else { 1.into() };
+        Ok(tvec!((Cost::FMA(i32::datum_type()), n * (s.co * oh * ow * s.kh * s.kw))))
+    }
+
+    as_op!();
+}
+
+/// The [`DepthwiseQConv`] for `node` if it is tract's quantised `Conv` with one group per
+/// channel (OIHW weights `[c, 1, kh, kw]`, NCHW or CHW data, stride 1 or 2, no dilation), u8
+/// input and output, constant i8 weights of zero point 0, an i32 bias and constant
+/// quantisation parameters.
+pub(crate) fn depthwise_q(model: &TypedModel, node: &TypedNode) -> TractResult<Option<DepthwiseQConv>> {
+    if !super::own_int8_operators() {
+        return Ok(None);
+    }
+    let Some(conv) = node.op_as::<Conv>() else { return Ok(None) };
+    let facts = model.node_input_facts(node.id)?;
+    let ps = &conv.pool_spec;
+    let plain = conv.q_params.is_some()
+        && conv.kernel_fmt == KernelFormat::OIHW
+        && ps.kernel_shape.len() == 2
+        && all_ones(&ps.dilations)
+        && facts.len() == 9
+        && node.outputs[0].fact.datum_type.unquantized() == u8::datum_type()
+        && facts[0].datum_type.unquantized() == u8::datum_type()
+        && facts[1].datum_type.unquantized() == i8::datum_type();
+    if !plain {
+        return Ok(None);
+    }
+    let Some(input) = facts[0].shape.as_concrete() else { return Ok(None) };
+    let (batch, c, h, w) = match (ps.data_format, input) {
+        (DataFormat::NCHW, &[_, c, h, w]) => (true, c, h, w),
+        (DataFormat::CHW, &[c, h, w]) => (false, c, h, w),
+        _ => return Ok(None),
+    };
+    if !(conv.group > 1 && conv.group == c && ps.output_channels == c) {
+        return Ok(None);
+    }
+    let stride = match ps.strides.as_deref() {
+        None | Some([1, 1]) => 1,
+        Some([2, 2]) => 2,
+        _ => return Ok(None),
+    };
+    let Some(pad) = pads_2d(&ps.padding) else { return Ok(None) };
+    let (kh, kw) = (ps.kernel_shape[0], ps.kernel_shape[1]);
+    let shape = ConvShape { ci: c, h, w, co: c, kh, kw, pad, stride };
+    if shape.padded().0 < kh || shape.padded().1 < kw {
+        return Ok(None);
+    }
+    let (Some(kernel), Some(bias)) = (&facts[1].konst, konst_values::<i32>(facts[2], c)?) else { return Ok(None) };
+    let params = (
+        konst_values::<i32>(facts[3], 1)?,
+        konst_values::<f32>(facts[4], 1)?,
+        konst_values::<i32>(facts[5], c)?,
+        konst_values::<f32>(facts[6], c)?,
+        konst_values::<i32>(facts[7], 1)?,
+        konst_values::<f32>(facts[8], 1)?,
+    );
+    let (Some(x0), Some(x_scale), Some(k0), Some(k_scale), Some(y0), Some(y_scale)) = params else { return Ok(None) };
+    let (Ok(x0), Ok(y0)) = (u8::try_from(x0[0]), u8::try_from(y0[0])) else { return Ok(None) };
+    if k0.iter().any(|&z| z != 0) || kernel.len() != c * kh * kw {
+        return Ok(None);
+    }
+    let kernel = kernel.try_as_plain_ram()?;
+    // SAFETY: the kernel's datum type is i8, possibly with quantisation parameters (checked).
+    let kernel = unsafe { kernel.as_slice_unchecked::<i8>() };
+    let scale: Vec<f32> = k_scale.iter().map(|&k| x_scale[0] * k / y_scale[0]).collect();
+    let op = DepthwiseQConv::new(shape, batch, kernel, &bias, (x0, &scale, y0), node.outputs[0].fact.datum_type)?;
+    // tract's exact product is only ours within these bounds (see [`exact_fits`]).
+    if op.exact && !exact_fits(scale[0], sum_bound(kernel, &bias, kh * kw)) {
+        return Ok(None);
+    }
+    Ok(Some(op))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tract_nnef::tract_core::ops::cnn::{PaddingSpec, PoolSpec};
+
+    /// tract's quantised depthwise `Conv` of `s` on `batch` (NCHW) or CHW data, with input zero
+    /// point 117, output zero point 100, and per-channel weight scales (`one_scale`: the same
+    /// for every channel), wired in a model of its own.
+    fn tract_model(s: &ConvShape, batch: bool, one_scale: bool) -> TypedModel {
+        let c = s.ci;
+        let mut model = TypedModel::default();
+        let x_shape: TVec<usize> = if batch { tvec![1, c, s.h, s.w] } else { tvec![c, s.h, s.w] };
+        let x = model.add_source("x", u8::fact(&x_shape)).unwrap();
+        let w: Vec<i8> = (0..c * s.kh * s.kw).map(|i| ((i * 104729) % 255) as i32 as i8).collect();
+        let konst = |name: &str, t: Tensor, model: &mut TypedModel| model.add_const(name, t).unwrap();
+        let w = konst("w", Tensor::from_shape(&[c, 1, s.kh, s.kw], &w).unwrap(), &mut model);
+        let bias: Vec<i32> = (0..c as i32).map(|o| 300 * o - 2000).collect();
+        let b = konst("b", Tensor::from_shape(&[c], &bias).unwrap(), &mut model);
+        let taps = (s.kh * s.kw) as f32;
+        let w_scale: Vec<f32> = (0..c).map(|o| if one_scale { 0.4 } else { 0.2 + 0.05 * o as f32 }).collect();
+        let w_scale: Vec<f32> = w_scale.iter().map(|v| v / (taps.sqrt() * 127.0)).collect();
+        let scalars = [
+            tensor0(117i32),
+            tensor0(0.02f32),
+            tensor0(0i32),
+            if one_scale { tensor0(w_scale[0]) } else { tensor1(&w_scale) },
+            tensor0(100i32),
+            tensor0(0.01f32),
+        ];
+        let mut inputs = vec![x, w, b];
+        for (i, t) in scalars.into_iter().enumerate() {
+            inputs.push(konst(&format!("q{i}"), t, &mut model));
+        }
+        let pool_spec = PoolSpec {
+            data_format: if batch { DataFormat::NCHW } else { DataFormat::CHW },
+            kernel_shape: tvec![s.kh, s.kw],
+            padding: PaddingSpec::ExplicitOnnxPool(tvec![s.pad[0], s.pad[1]], tvec![s.pad[2], s.pad[3]], false),
+            dilations: None,
+            strides: Some(tvec![s.stride, s.stride]),
+            input_channels: c,
+            output_channels: c,
+        };
+        let op = Conv { pool_spec, kernel_fmt: KernelFormat::OIHW, group: c, q_params: Some(u8::datum_type()) };
+        let y = model.wire_node("dw", op, &inputs).unwrap();
+        model.select_output_outlets(&y).unwrap();
+        model
+    }
+
+    /// Every path (VNNI where the CPU has it, the float kernel's sums everywhere) gives tract's
+    /// own bytes: 3x3 and 5x5 kernels, stride 1 and 2, maps of 16 columns and of widths that
+    /// leave part-filled blocks, per-channel scales and one (tract's exact product), NCHW and
+    /// CHW, one layer in channel groups.
+    #[test]
+    fn every_path_gives_tract_s_bytes() {
+        let shape = |c, h, w, k: usize, stride| ConvShape { ci: c, h, w, co: c, kh: k, kw: k, pad: [k / 2; 4], stride };
+        let cases = [
+            (shape(6, 16, 16, 3, 1), true, false),
+            (shape(5, 33, 65, 3, 2), true, true),
+            (shape(4, 13, 27, 5, 1), false, false),
+            (shape(3, 16, 16, 5, 2), true, false),
+            (ConvShape { ci: 3, h: 10, w: 7, co: 3, kh: 3, kw: 3, pad: [0, 1, 2, 0], stride: 2 }, false, true),
+            // Over SERIAL_MACS: channels in groups (on the pool, when there is one).
+            (shape(24, 64, 64, 5, 1), true, false),
+        ];
+        if !DepthwiseQConv::vnni() {
+            eprintln!("NOTE: no AVX-512 VNNI with VBMI here (or PRL_ISA caps it): DepthwiseQConv's VNNI path is NOT tested here, only the float kernel's exact sums");
+        }
+        for (s, batch, one_scale) in cases {
+            let model = tract_model(&s, batch, one_scale);
+            let n = s.ci * s.h * s.w;
+            let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
+            let bytes: Vec<u8> = (0..n).map(|i| ((i * 7919) % 256) as u8).collect();
+            let input = Tensor::from_shape(&x_shape, &bytes).unwrap().into_tvalue();
+            let want = model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
+            // SAFETY: u8 (quantised) output.
+            let want = unsafe { want.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+            let spread: std::collections::HashSet<u8> = want.iter().copied().collect();
+            assert!(
+                spread.len() > (want.len() / 5).min(50),
+                "{s:?}: the outputs should spread over the bytes: {}",
+                spread.len()
+            );
+            let node = model.node(model.output_outlets().unwrap()[0].node);
+            let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
+            assert_eq!(op.exact, one_scale);
+            let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
+            for vnni in paths {
+                let got = op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap();
+                assert_eq!(got.shape(), model.output_fact(0).unwrap().shape.as_concrete().unwrap());
+                // SAFETY: u8 (quantised) output.
+                let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+                assert!(got == want, "{s:?}, vnni {vnni}: other bytes");
+            }
+            // And put in by `accelerate`, as a plan gets it.
+            let mut fast = model.clone();
+            assert_eq!(crate::ops::accelerate(&mut fast).unwrap().int8_convolutions, 1, "{s:?}");
+            let got = fast.into_runnable().unwrap().run(tvec![input]).unwrap().remove(0);
+            // SAFETY: u8 (quantised) output.
+            let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+            assert!(got == want, "{s:?}: other bytes in the accelerated model");
+        }
+    }
+}
