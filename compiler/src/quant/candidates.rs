@@ -27,10 +27,12 @@ pub struct Candidate {
     pub kind: Kind,
     /// Its activation input.
     pub input: String,
-    /// The value its quantised output stands for: its own output, or that of the `Relu` folded
-    /// into it.
+    /// The value its quantised output stands for: its own output, or that of the `Relu` (or
+    /// `Clip` from 0) folded into it.
     pub output: String,
-    /// The folded `Relu` node, if any.
+    /// The folded `Relu` node, if any, or `Clip` node with a lower bound of 0 (ReLU6: its output
+    /// range starts at 0 and ends at most at the upper bound, so its u8 form is the layer's own
+    /// output saturated at the ends of that range).
     pub relu: Option<String>,
     /// A `Relu` follows after a `MaxPool` (AlexNet's conv, BN, pool, ReLU): the output's range
     /// starts at 0, and pool and ReLU then run on u8.
@@ -113,7 +115,7 @@ pub fn candidates(graph: &pb::GraphProto) -> Vec<Candidate> {
             continue;
         }
         let out = n.output[0].as_str();
-        let relu = sole(out, "Relu");
+        let relu = sole(out, "Relu").or_else(|| sole(out, "Clip").filter(|c| clips_from_zero(c, &inits)));
         let relu_after_pool =
             relu.is_none() && sole(out, "MaxPool").is_some_and(|p| sole(&p.output[0], "Relu").is_some());
         found.push(Candidate {
@@ -129,6 +131,19 @@ pub fn candidates(graph: &pb::GraphProto) -> Vec<Candidate> {
         });
     }
     found
+}
+
+/// Whether a `Clip` node's lower bound is 0 and its upper one above 0 (or absent): bounds as
+/// inputs (opset 11 and later) from initializers, or as attributes (before).
+fn clips_from_zero(n: &pb::NodeProto, inits: &HashMap<&str, &pb::TensorProto>) -> bool {
+    let bound = |i: usize, attr: &str| match n.input.get(i).filter(|v| !v.is_empty()) {
+        Some(v) => inits.get(v.as_str()).and_then(|t| floats(t).first().copied()).map(Some),
+        None => Some(n.attribute.iter().find(|a| a.name == attr).map(|a| a.f)),
+    };
+    match (bound(1, "min"), bound(2, "max")) {
+        (Some(Some(lo)), Some(hi)) => lo == 0.0 && hi.is_none_or(|h| h > 0.0),
+        _ => false,
+    }
 }
 
 fn ints(n: &pb::NodeProto, name: &str) -> Vec<i64> {
@@ -183,5 +198,34 @@ mod tests {
         // MatMul weights [K, N] are per column.
         let (_, s) = quantise_weights(&w, &[2, 2], 1, true);
         assert_eq!(s, vec![1.0 / 127.0, 0.5 / 127.0]);
+    }
+
+    #[test]
+    fn a_clip_from_zero_folds_like_a_relu() {
+        let scalar = |name: &str, v: f32| pb::TensorProto {
+            name: name.into(),
+            data_type: FLOAT,
+            raw_data: v.to_le_bytes().to_vec(),
+            ..Default::default()
+        };
+        let (zero, six, minus) = (scalar("zero", 0.0), scalar("six", 6.0), scalar("minus", -1.0));
+        let inits: HashMap<&str, &pb::TensorProto> = [("zero", &zero), ("six", &six), ("minus", &minus)].into();
+        let clip = |inputs: &[&str], attribute: Vec<pb::AttributeProto>| pb::NodeProto {
+            op_type: "Clip".into(),
+            input: inputs.iter().map(|s| s.to_string()).collect(),
+            attribute,
+            ..Default::default()
+        };
+        let attr = |name: &str, f: f32| pb::AttributeProto { name: name.into(), f, ..Default::default() };
+        // ReLU6 and a clip from zero with no upper bound, as inputs or (before opset 11) attributes.
+        assert!(clips_from_zero(&clip(&["x", "zero", "six"], vec![]), &inits));
+        assert!(clips_from_zero(&clip(&["x", "zero"], vec![]), &inits));
+        assert!(clips_from_zero(&clip(&["x", "zero", ""], vec![]), &inits));
+        assert!(clips_from_zero(&clip(&["x"], vec![attr("min", 0.0), attr("max", 6.0)]), &inits));
+        // Not from zero, no lower bound, or bounds the graph computes: not folded.
+        assert!(!clips_from_zero(&clip(&["x", "minus", "six"], vec![]), &inits));
+        assert!(!clips_from_zero(&clip(&["x", "", "six"], vec![]), &inits));
+        assert!(!clips_from_zero(&clip(&["x", "computed", "six"], vec![]), &inits));
+        assert!(!clips_from_zero(&clip(&["x", "zero", "minus"], vec![]), &inits));
     }
 }

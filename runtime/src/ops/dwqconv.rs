@@ -19,7 +19,9 @@ use std::sync::Arc;
 
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::cnn::{Conv, KernelFormat};
+use tract_nnef::tract_core::ops::element_wise::ElementWiseOp;
 use tract_nnef::tract_core::ops::nn::DataFormat;
+use tract_nnef::tract_core::ops::quant::LookupTable;
 
 use super::conv::ConvShape;
 use super::dwconv::DepthwiseConv;
@@ -63,6 +65,11 @@ pub struct DepthwiseQConv {
     out_dt: DatumType,
     /// The portable path: the float kernel on `x − x0` with the integer weights, bias 0.
     float: DepthwiseConv,
+    /// A byte table the input goes through first ([`Self::reading_table`]).
+    table: Option<Arc<[u8; 256]>>,
+    /// The output is f32, each plane dequantised by this (and its activation) as it is made
+    /// ([`Self::dequantizing`]).
+    dequant: Option<DequantizeU8>,
 }
 
 impl std::fmt::Debug for DepthwiseQConv {
@@ -80,6 +87,8 @@ impl PartialEq for DepthwiseQConv {
             && self.bias == other.bias
             && super::same_bits(&self.scale, &other.scale)
             && (self.exact, self.x0, self.y0, self.out_dt) == (other.exact, other.x0, other.y0, other.out_dt)
+            && self.table == other.table
+            && self.dequant == other.dequant
     }
 }
 
@@ -137,7 +146,26 @@ impl DepthwiseQConv {
             y0,
             out_dt,
             float,
+            table: None,
+            dequant: None,
         })
+    }
+
+    /// The convolution followed by `dequant`: each output plane dequantised (with the
+    /// dequantiser's activation) while it is in the thread's cache, the values `dequant` would
+    /// have written from the bytes. MobileNet's depthwise layers with a hard-swish and a
+    /// squeeze-excitation after them (NanoTrack's blocks 4 to 8) feed f32 operators.
+    pub(crate) fn dequantizing(self, dequant: DequantizeU8) -> DepthwiseQConv {
+        DepthwiseQConv { dequant: Some(dequant), ..self }
+    }
+
+    /// The convolution of `table` applied to the input's bytes, reading the bytes before it:
+    /// the table is applied as each plane is copied into the padded one. tract makes such a
+    /// table of a dequantisation, an element-wise function and a quantisation (MobileNet's
+    /// hard-swish between an integer pointwise layer and a depthwise one), and ran it as a
+    /// pass of its own (NanoTrack: four, 0.07 ms a step on one thread).
+    pub(crate) fn reading_table(self, table: [u8; 256]) -> DepthwiseQConv {
+        DepthwiseQConv { table: Some(Arc::new(table)), ..self }
     }
 
     /// Whether the VNNI path runs here ([`crate::isa`]).
@@ -170,7 +198,10 @@ impl DepthwiseQConv {
         // SAFETY: the CPU has AVX-512F, BW, VL, VNNI and VBMI ([`Self::vnni`]); `src`, `pad`
         // (the padded plane and its slack) and `dst` are the planes of the shape (asserted).
         unsafe {
-            vnni::copy_rows(s, src, pad);
+            match &self.table {
+                None => vnni::copy_rows::<false>(s, src, pad, &[0; 256]),
+                Some(t) => vnni::copy_rows::<true>(s, src, pad, t),
+            }
             vnni::plane(s, pad, words, q, dst)
         }
     }
@@ -199,13 +230,17 @@ mod vnni {
     };
 
     /// `src` (`[h, w]` bytes) into the interior of the padded plane `pad`, 64 bytes at a time
-    /// (a row of a few dozen bytes is not worth a call to `memcpy`).
+    /// (a row of a few dozen bytes is not worth a call to `memcpy`), through `table` where
+    /// `TABLE` (`vpermi2b` looks up 128 entries, twice, and the top bit picks).
     ///
     /// # Safety
-    /// The CPU has AVX-512F and BW; `src` is `h · w` bytes and `pad` the padded plane of `s`.
-    #[target_feature(enable = "avx512f,avx512bw")]
-    pub(super) unsafe fn copy_rows(s: &ConvShape, src: &[u8], pad: &mut [u8]) {
+    /// The CPU has AVX-512F, BW and VBMI; `src` is `h · w` bytes and `pad` the padded plane of
+    /// `s`.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vbmi")]
+    pub(super) unsafe fn copy_rows<const TABLE: bool>(s: &ConvShape, src: &[u8], pad: &mut [u8], table: &[u8; 256]) {
         let (_, wp) = s.padded();
+        // SAFETY: 256 bytes, four loads of 64.
+        let t: [__m512i; 4] = std::array::from_fn(|k| unsafe { _mm512_loadu_si512(table.as_ptr().add(64 * k).cast()) });
         for (y, row) in src.chunks_exact(s.w).enumerate() {
             let at = (y + s.pad[0]) * wp + s.pad[1];
             let to = &mut pad[at..at + s.w];
@@ -215,7 +250,12 @@ mod vnni {
                 let keep: u64 = if n == 64 { u64::MAX } else { (1u64 << n) - 1 };
                 // SAFETY: `n` bytes from `x` on within `row` and within `to`.
                 unsafe {
-                    let v = _mm512_maskz_loadu_epi8(keep, row.as_ptr().add(x).cast());
+                    let mut v = _mm512_maskz_loadu_epi8(keep, row.as_ptr().add(x).cast());
+                    if TABLE {
+                        let lo = _mm512_permutex2var_epi8(t[0], v, t[1]);
+                        let hi = _mm512_permutex2var_epi8(t[2], v, t[3]);
+                        v = _mm512_mask_blend_epi8(_mm512_movepi8_mask(v), lo, hi);
+                    }
                     _mm512_mask_storeu_epi8(to.as_mut_ptr().add(x).cast(), keep, v);
                 }
                 x += n;
@@ -307,8 +347,10 @@ impl Op for DepthwiseQConv {
         let s = &self.shape;
         let path = if Self::vnni() { "AVX-512 VNNI" } else { "the float kernel's exact sums" };
         let scale = if self.exact { "one scale, exact product" } else { "per-channel scales" };
+        let table = if self.table.is_some() { ", input through a byte table" } else { "" };
+        let out = if self.dequant.is_some() { ", output dequantised" } else { "" };
         Ok(vec![format!(
-            "{}x{} kernel, stride {}, {} channels, pad {:?}, u8 x i8 on {path}, {scale}",
+            "{}x{} kernel, stride {}, {} channels, pad {:?}, u8 x i8 on {path}, {scale}{table}{out}",
             s.kh, s.kw, s.stride, s.ci, s.pad
         )])
     }
@@ -339,25 +381,47 @@ impl DepthwiseQConv {
         let (oh, ow) = s.out();
         let shape: TVec<usize> = if self.batch { tvec![n, c, oh, ow] } else { tvec![c, oh, ow] };
         let plane = oh * ow;
-        let mut out = if vnni {
-            self.run_vnni(&input, &shape)?
-        } else {
-            // The float kernel's sums (exact integers), requantised plane by plane.
-            let sums = self.float.eval(ctx, tvec![input])?.remove(0);
-            let sums = sums.try_as_plain_ram()?;
-            let sums = sums.as_slice::<f32>()?;
-            // SAFETY: every plane of the output is requantised whole.
-            unsafe {
-                output_tensor_written(&shape, |out: &mut [u8]| {
-                    let mut ints = vec![0i32; plane];
-                    for (p, (o, f)) in out.chunks_exact_mut(plane).zip(sums.chunks_exact(plane)).enumerate() {
-                        ints.iter_mut().zip(f).for_each(|(i, &f)| *i = f as i32);
-                        requantise(&ints, self.bias[p % c], self.scale[p % c], self.exact, self.y0, o);
-                    }
-                    Ok(())
-                })?
+        if vnni {
+            return self.run_vnni(&input, &shape);
+        }
+        // The float kernel's sums (exact integers), requantised plane by plane.
+        let input = match &self.table {
+            None => input,
+            Some(t) => {
+                let mut looked = input.into_tensor();
+                // SAFETY: u8 storage (checked above); every byte replaced by its entry.
+                unsafe { looked.try_as_plain_ram_mut()?.as_slice_mut_unchecked::<u8>() }
+                    .iter_mut()
+                    .for_each(|b| *b = t[*b as usize]);
+                looked.into_tvalue()
             }
         };
+        let sums = self.float.eval(ctx, tvec![input])?.remove(0);
+        let sums = sums.try_as_plain_ram()?;
+        let sums = sums.as_slice::<f32>()?;
+        // SAFETY: every plane of the output is requantised whole.
+        let mut out = unsafe {
+            output_tensor_written(&shape, |out: &mut [u8]| {
+                let mut ints = vec![0i32; plane];
+                for (p, (o, f)) in out.chunks_exact_mut(plane).zip(sums.chunks_exact(plane)).enumerate() {
+                    ints.iter_mut().zip(f).for_each(|(i, &f)| *i = f as i32);
+                    requantise(&ints, self.bias[p % c], self.scale[p % c], self.exact, self.y0, o);
+                }
+                Ok(())
+            })?
+        };
+        if let Some(dq) = &self.dequant {
+            let bytes = out.try_as_plain_ram()?;
+            // SAFETY: u8 storage, just written.
+            let bytes = unsafe { bytes.as_slice_unchecked::<u8>() };
+            // SAFETY: the whole output is dequantised.
+            return unsafe {
+                output_tensor_written(&shape, |values: &mut [f32]| {
+                    dq.apply(bytes, values);
+                    Ok(())
+                })
+            };
+        }
         // SAFETY: same storage type (u8), the output fact's quantisation parameters.
         unsafe { out.set_datum_type(self.out_dt) };
         Ok(out)
@@ -377,18 +441,38 @@ impl DepthwiseQConv {
         let images = input.len() / (c * in_plane);
         let macs = plane * s.kh * s.kw;
         let group = (SERIAL_MACS / 8 / macs.max(1)).clamp(1, images * c);
-        // SAFETY: every plane of every group is written whole.
-        serial_if_small(images * c * macs, || unsafe {
-            output_tensor_written(shape, |out: &mut [u8]| {
-                par_chunks(out, group * plane, |g, dst| {
-                    let mut pad = vec![self.x0; self.padded_len()];
-                    for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
-                        let p = g * group + k;
-                        self.channel_vnni(p % c, &input[p * in_plane..(p + 1) * in_plane], &mut pad, d);
-                    }
-                });
-                Ok(())
-            })
+        let src = |p: usize| &input[p * in_plane..(p + 1) * in_plane];
+        // SAFETY (both): every plane of every group is written whole.
+        serial_if_small(images * c * macs, || match &self.dequant {
+            None => unsafe {
+                let mut out = output_tensor_written(shape, |out: &mut [u8]| {
+                    par_chunks(out, group * plane, |g, dst| {
+                        let mut pad = vec![self.x0; self.padded_len()];
+                        for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                            let p = g * group + k;
+                            self.channel_vnni(p % c, src(p), &mut pad, d);
+                        }
+                    });
+                    Ok(())
+                })?;
+                // SAFETY: same storage type (u8), the output fact's quantisation parameters.
+                out.set_datum_type(self.out_dt);
+                Ok(out)
+            },
+            Some(dq) => unsafe {
+                output_tensor_written(shape, |out: &mut [f32]| {
+                    par_chunks(out, group * plane, |g, dst| {
+                        let mut pad = vec![self.x0; self.padded_len()];
+                        let mut bytes = vec![0u8; plane];
+                        for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                            let p = g * group + k;
+                            self.channel_vnni(p % c, src(p), &mut pad, &mut bytes);
+                            dq.apply(&bytes, d);
+                        }
+                    });
+                    Ok(())
+                })
+            },
         })
     }
 
@@ -419,7 +503,8 @@ impl TypedOp for DepthwiseQConv {
         let (c, oh, ow): (TDim, TDim, TDim) = (self.shape.co.into(), oh.into(), ow.into());
         let shape: TVec<TDim> =
             if self.batch { tvec![inputs[0].shape[0].clone(), c, oh, ow] } else { tvec![c, oh, ow] };
-        Ok(tvec!(self.out_dt.fact(shape)))
+        let dt = if self.dequant.is_some() { f32::datum_type() } else { self.out_dt };
+        Ok(tvec!(dt.fact(shape)))
     }
 
     fn cost(&self, inputs: &[&TypedFact]) -> TractResult<TVec<(Cost, TDim)>> {
@@ -430,6 +515,53 @@ impl TypedOp for DepthwiseQConv {
     }
 
     as_op!();
+}
+
+/// `op` reading the input of the u8 `LookupTable` that makes `x` (its input, past a plain
+/// cast), where nothing else reads that table ([`DepthwiseQConv::reading_table`]), with the
+/// input it then reads; else `op` and `x`.
+pub(crate) fn past_table(model: &TypedModel, x: OutletId, op: DepthwiseQConv) -> (DepthwiseQConv, OutletId) {
+    let prev = model.node(x.node);
+    let table = prev
+        .op_as::<ElementWiseOp>()
+        .and_then(|e| e.0.downcast_ref::<LookupTable>())
+        .filter(|_| super::act::sole_consumer(model, prev).is_some())
+        .and_then(|l| <[u8; 256]>::try_from(l.table.table()).ok());
+    match table {
+        Some(t) if model.outlet_fact(prev.inputs[0]).is_ok_and(|f| f.datum_type.unquantized() == u8::datum_type()) => {
+            (op.reading_table(t), prev.inputs[0])
+        }
+        _ => (op, x),
+    }
+}
+
+/// The dequantisation (tract's, with the activation after it) that alone reads `node`'s output
+/// (past a plain cast), and the nodes it stands for: the convolution can write its values
+/// ([`DepthwiseQConv::dequantizing`]).
+pub(crate) fn dequantized_after(
+    model: &TypedModel,
+    node: &TypedNode,
+) -> TractResult<Option<(DequantizeU8, Vec<usize>)>> {
+    use tract_nnef::tract_core::ops::cast::Cast;
+    let Some(mut next) = super::act::sole_consumer(model, node) else { return Ok(None) };
+    let mut chain = vec![];
+    if next.op_as::<Cast>().is_some_and(|c| c.to.unquantized() == u8::datum_type()) {
+        chain.push(next.id);
+        let Some(after) = super::act::sole_consumer(model, next) else { return Ok(None) };
+        next = after;
+    }
+    let Some(dq) = super::quant::dequantize_u8(model, next)? else { return Ok(None) };
+    let shape = next.outputs[0].fact.shape.as_concrete().unwrap_or_default();
+    Ok(Some(match super::act::tail(model, next, None)?.and_then(|t| Some((dq.fused(&t, shape)?, t.chain))) {
+        Some((fused, c)) => {
+            chain.extend(c);
+            (fused, chain)
+        }
+        None => {
+            chain.push(next.id);
+            (dq, chain)
+        }
+    }))
 }
 
 /// The [`DepthwiseQConv`] for `node` if it is tract's quantised `Conv` with one group per
@@ -507,12 +639,17 @@ mod tests {
 
     /// tract's quantised depthwise `Conv` of `s` on `batch` (NCHW) or CHW data, with input zero
     /// point 117, output zero point 100, and per-channel weight scales (`one_scale`: the same
-    /// for every channel), wired in a model of its own.
-    fn tract_model(s: &ConvShape, batch: bool, one_scale: bool) -> TypedModel {
+    /// for every channel), wired in a model of its own, its input through `table` where given
+    /// (tract's `LookupTable`).
+    fn tract_model(s: &ConvShape, batch: bool, one_scale: bool, table: Option<&[u8]>) -> TypedModel {
         let c = s.ci;
         let mut model = TypedModel::default();
         let x_shape: TVec<usize> = if batch { tvec![1, c, s.h, s.w] } else { tvec![c, s.h, s.w] };
-        let x = model.add_source("x", u8::fact(&x_shape)).unwrap();
+        let mut x = model.add_source("x", u8::fact(&x_shape)).unwrap();
+        if let Some(t) = table {
+            let lut = tract_nnef::tract_core::ops::quant::lookup_table(tract_linalg::routines::lut_u8(t).unwrap());
+            x = model.wire_node("lut", lut, &[x]).unwrap()[0];
+        }
         let w: Vec<i8> = (0..c * s.kh * s.kw).map(|i| ((i * 104729) % 255) as i32 as i8).collect();
         let konst = |name: &str, t: Tensor, model: &mut TypedModel| model.add_const(name, t).unwrap();
         let w = konst("w", Tensor::from_shape(&[c, 1, s.kh, s.kw], &w).unwrap(), &mut model);
@@ -568,7 +705,7 @@ mod tests {
             eprintln!("NOTE: no AVX-512 VNNI with VBMI here (or PRL_ISA caps it): DepthwiseQConv's VNNI path is NOT tested here, only the float kernel's exact sums");
         }
         for (s, batch, one_scale) in cases {
-            let model = tract_model(&s, batch, one_scale);
+            let model = tract_model(&s, batch, one_scale, None);
             let n = s.ci * s.h * s.w;
             let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
             let bytes: Vec<u8> = (0..n).map(|i| ((i * 7919) % 256) as u8).collect();
@@ -600,6 +737,91 @@ mod tests {
             // SAFETY: u8 (quantised) output.
             let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
             assert!(got == want, "{s:?}: other bytes in the accelerated model");
+        }
+    }
+
+    /// A byte table before the convolution (tract's `LookupTable`, as it makes of a hard-swish
+    /// between two integer layers) is read by the convolution, which gives, on every path,
+    /// tract's bytes; the table's node goes.
+    #[test]
+    fn a_table_before_it_is_applied_as_planes_are_padded() {
+        let table: Vec<u8> = (0..256).map(|i| ((i * i) / 255 + (i % 7)).min(255) as u8).collect();
+        for (s, batch) in [
+            (ConvShape { ci: 6, h: 16, w: 16, co: 6, kh: 3, kw: 3, pad: [1; 4], stride: 1 }, false),
+            (ConvShape { ci: 5, h: 33, w: 70, co: 5, kh: 5, kw: 5, pad: [2; 4], stride: 2 }, true),
+        ] {
+            let model = tract_model(&s, batch, false, Some(&table));
+            let n = s.ci * s.h * s.w;
+            let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
+            let bytes: Vec<u8> = (0..n).map(|i| ((i * 7919) % 256) as u8).collect();
+            let input = Tensor::from_shape(&x_shape, &bytes).unwrap().into_tvalue();
+            let want = model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
+            // SAFETY: u8 (quantised) output.
+            let want = unsafe { want.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+            let node = model.node(model.output_outlets().unwrap()[0].node);
+            let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
+            let (op, x) = past_table(&model, node.inputs[0], op);
+            assert!(op.table.is_some() && x.node == 0, "the table read, the source its input");
+            let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
+            for vnni in paths {
+                let got = op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap();
+                // SAFETY: u8 (quantised) output.
+                let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+                assert!(got == want, "{s:?}, vnni {vnni}: other bytes");
+            }
+            let mut fast = model.clone();
+            crate::ops::accelerate(&mut fast).unwrap();
+            assert!(fast.nodes().iter().all(|n| n.name != "lut"), "the table's node is gone");
+            let got = fast.into_runnable().unwrap().run(tvec![input]).unwrap().remove(0);
+            // SAFETY: u8 (quantised) output.
+            let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+            assert!(got == want, "{s:?}: other bytes in the accelerated model");
+        }
+    }
+
+    /// A dequantisation with a hard-swish after the convolution (MobileNet's blocks with a
+    /// squeeze-excitation) is written by it: tract's f32 values on every path, the dequantiser
+    /// and the activation's nodes gone.
+    #[test]
+    fn a_dequantisation_after_it_is_written_by_it() {
+        use tract_nnef::tract_core::ops::nn::hard_swish;
+        use tract_nnef::tract_core::ops::quant::DequantizeLinearF32;
+        for (s, batch) in [
+            (ConvShape { ci: 6, h: 16, w: 16, co: 6, kh: 5, kw: 5, pad: [2; 4], stride: 1 }, false),
+            (ConvShape { ci: 24, h: 64, w: 64, co: 24, kh: 3, kw: 3, pad: [1; 4], stride: 2 }, true),
+        ] {
+            let mut model = tract_model(&s, batch, false, None);
+            let y = model.output_outlets().unwrap()[0];
+            let dq = DequantizeLinearF32 { scale: 0.05, zero_point: 100 };
+            let y = model.wire_node("dequant", dq, &[y]).unwrap();
+            let y = model.wire_node("hswish", hard_swish(), &y).unwrap();
+            model.select_output_outlets(&y).unwrap();
+            let n = s.ci * s.h * s.w;
+            let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
+            let bytes: Vec<u8> = (0..n).map(|i| ((i * 7919) % 256) as u8).collect();
+            let input = Tensor::from_shape(&x_shape, &bytes).unwrap().into_tvalue();
+            let want = model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
+            let want: Vec<u32> =
+                want.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().iter().map(|v| v.to_bits()).collect();
+            let conv = model.node_by_name("dw").unwrap();
+            let op = depthwise_q(&model, conv).unwrap().expect("a DepthwiseQConv");
+            let (dq, chain) = dequantized_after(&model, conv).unwrap().expect("the dequantiser after it");
+            assert_eq!(chain.len(), 2, "the dequantiser and the hard-swish");
+            let op = op.dequantizing(dq);
+            let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
+            for vnni in paths {
+                let got = op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap();
+                let got: Vec<u32> =
+                    got.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().iter().map(|v| v.to_bits()).collect();
+                assert!(got == want, "{s:?}, vnni {vnni}: other values");
+            }
+            let mut fast = model.clone();
+            crate::ops::accelerate(&mut fast).unwrap();
+            assert_eq!(fast.nodes().len(), 2, "the source and the convolution: {fast}");
+            let got = fast.into_runnable().unwrap().run(tvec![input]).unwrap().remove(0);
+            let got: Vec<u32> =
+                got.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().iter().map(|v| v.to_bits()).collect();
+            assert!(got == want, "{s:?}: other values in the accelerated model");
         }
     }
 }

@@ -164,7 +164,17 @@ pub fn accelerate_with(model: &mut TypedModel, winograd: Winograd) -> TractResul
                 (Box::new(op), tvec![past_plain_cast(model, node.inputs[0])?])
             } else if let Some(op) = dwqconv::depthwise_q(model, node)? {
                 done.int8_convolutions += 1;
-                (Box::new(op), tvec![past_plain_cast(model, node.inputs[0])?])
+                let (op, x) = dwqconv::past_table(model, past_plain_cast(model, node.inputs[0])?, op);
+                // A dequantiser after it (f32 operators read the output): its values written by
+                // the convolution.
+                let op = match dwqconv::dequantized_after(model, node)? {
+                    Some((dq, nodes)) => {
+                        chain.extend(nodes);
+                        op.dequantizing(dq)
+                    }
+                    None => op,
+                };
+                (Box::new(op), tvec![past_plain_cast(model, x)?])
             } else if let Some(op) = pool::channel_max_pool(model, node)? {
                 done.pools += 1;
                 (Box::new(op), tvec![node.inputs[0]])
