@@ -566,6 +566,7 @@ fn depthwise_layers_quantised_give_tract_s_outputs() {
     let qi = plan.manifest().quantization.as_ref().unwrap();
     let dw = qi.layers.iter().filter(|l| l.op == "dwconv" && l.decision == prl_runtime::LayerDecision::Int8).count();
     assert_eq!(dw, 20, "NanoTrack's twenty depthwise layers: {:?}", qi.layers);
+    assert!(qi.layers.iter().filter(|l| l.op == "dwconv").all(|l| l.per_channel), "per-channel weights");
     let made = plan.search_nodes().into_iter().filter(|n| n.op == "DepthwiseQConv").count();
     assert_eq!(made, 20, "every depthwise layer a DepthwiseQConv");
     drop(plan);

@@ -161,7 +161,9 @@ pub fn quantize(
             let per_channel = match opts.per_channel {
                 PerChannel::On => true,
                 PerChannel::Off => false,
-                PerChannel::Auto => e_tensor > 0.02 && e_tensor > 2.0 * e_channel,
+                // A depthwise layer's channels are filters of their own (one input channel each),
+                // whose ranges differ widely: one scale for all of them costs accuracy.
+                PerChannel::Auto => c.depthwise || (e_tensor > 0.02 && e_tensor > 2.0 * e_channel),
             };
             let k: usize = if c.kind == Kind::Conv { dims[1..].iter().product() } else { dims[0] };
             let macs = stats.shapes[&c.output].iter().product::<usize>() as u64 * k as u64;
