@@ -21,6 +21,8 @@ mod conv_lanes;
 mod dwconv;
 mod dwconv_hwc;
 mod dwqconv;
+#[cfg(target_arch = "x86_64")]
+mod dwqconv_kernel;
 mod matmul;
 mod norm;
 mod permute;
