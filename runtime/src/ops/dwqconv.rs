@@ -13,7 +13,10 @@
 //! [`super::PackedQConv`] requantises (tract's rounding). Elsewhere the same exact sums come
 //! from the float depthwise kernel of every other CPU ([`DepthwiseConv`] on `x − x0` and the
 //! integer weights: every product and partial sum is an integer under 2^24, so exact in f32),
-//! requantised by the same code: the same bytes on every path.
+//! requantised by the same code: the same bytes on every path. Around it, in NanoTrack's
+//! `--depthwise` plans, the byte table tract makes of the hard-swish before it is applied as
+//! each plane is padded ([`DepthwiseQConv::reading_table`]), and the dequantisation (with its
+//! activation) after it as each plane is made ([`DepthwiseQConv::dequantizing`]).
 
 use std::sync::Arc;
 
