@@ -419,7 +419,11 @@ pub(crate) fn dequantized_after(
     use tract_nnef::tract_core::ops::cast::Cast;
     let Some(mut next) = super::act::sole_consumer(model, node) else { return Ok(None) };
     let mut chain = vec![];
-    if next.op_as::<Cast>().is_some_and(|c| c.to.unquantized() == u8::datum_type()) {
+    // Only a cast that adds or drops quantisation parameters (one between two quantised types
+    // rescales the bytes).
+    let from = node.outputs[0].fact.datum_type;
+    let plain = |to: DatumType| to.unquantized() == from.unquantized() && !(from.is_quantized() && to.is_quantized());
+    if next.op_as::<Cast>().is_some_and(|c| plain(c.to)) {
         chain.push(next.id);
         let Some(after) = super::act::sole_consumer(model, next) else { return Ok(None) };
         next = after;
