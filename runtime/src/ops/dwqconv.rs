@@ -563,6 +563,19 @@ mod tests {
         model
     }
 
+    /// The tests' u8 input for `s`: NCHW (`batch`) or CHW bytes spread over 0..=255.
+    fn input_for(s: &ConvShape, batch: bool) -> TValue {
+        let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
+        let bytes: Vec<u8> = (0..s.ci * s.h * s.w).map(|i| ((i * 7919) % 256) as u8).collect();
+        Tensor::from_shape(&x_shape, &bytes).unwrap().into_tvalue()
+    }
+
+    /// The bytes of a u8 (possibly quantised) tensor.
+    fn bytes_of(t: &Tensor) -> Vec<u8> {
+        // SAFETY: the tests' outputs are u8, possibly with quantisation parameters.
+        unsafe { t.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() }
+    }
+
     /// Every path (VNNI where the CPU has it, the float kernel's sums everywhere) gives tract's
     /// own bytes: 3x3 and 5x5 kernels, stride 1 and 2, maps of 16 columns and of widths that
     /// leave part-filled blocks, per-channel scales and one (tract's exact product), NCHW and
@@ -584,13 +597,8 @@ mod tests {
         }
         for (s, batch, one_scale) in cases {
             let model = tract_model(&s, batch, one_scale, None);
-            let n = s.ci * s.h * s.w;
-            let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
-            let bytes: Vec<u8> = (0..n).map(|i| ((i * 7919) % 256) as u8).collect();
-            let input = Tensor::from_shape(&x_shape, &bytes).unwrap().into_tvalue();
-            let want = model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
-            // SAFETY: u8 (quantised) output.
-            let want = unsafe { want.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+            let input = input_for(&s, batch);
+            let want = bytes_of(&model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap()[0]);
             let spread: std::collections::HashSet<u8> = want.iter().copied().collect();
             assert!(
                 spread.len() > (want.len() / 5).min(50),
@@ -604,16 +612,13 @@ mod tests {
             for vnni in paths {
                 let got = op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap();
                 assert_eq!(got.shape(), model.output_fact(0).unwrap().shape.as_concrete().unwrap());
-                // SAFETY: u8 (quantised) output.
-                let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+                let got = bytes_of(&got);
                 assert!(got == want, "{s:?}, vnni {vnni}: other bytes");
             }
             // And put in by `accelerate`, as a plan gets it.
             let mut fast = model.clone();
             assert_eq!(crate::ops::accelerate(&mut fast).unwrap().int8_convolutions, 1, "{s:?}");
-            let got = fast.into_runnable().unwrap().run(tvec![input]).unwrap().remove(0);
-            // SAFETY: u8 (quantised) output.
-            let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+            let got = bytes_of(&fast.into_runnable().unwrap().run(tvec![input]).unwrap()[0]);
             assert!(got == want, "{s:?}: other bytes in the accelerated model");
         }
     }
@@ -629,13 +634,8 @@ mod tests {
             (ConvShape { ci: 5, h: 33, w: 70, co: 5, kh: 5, kw: 5, pad: [2; 4], stride: 2 }, true),
         ] {
             let model = tract_model(&s, batch, false, Some(&table));
-            let n = s.ci * s.h * s.w;
-            let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
-            let bytes: Vec<u8> = (0..n).map(|i| ((i * 7919) % 256) as u8).collect();
-            let input = Tensor::from_shape(&x_shape, &bytes).unwrap().into_tvalue();
-            let want = model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
-            // SAFETY: u8 (quantised) output.
-            let want = unsafe { want.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+            let input = input_for(&s, batch);
+            let want = bytes_of(&model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap()[0]);
             let node = model.node(model.output_outlets().unwrap()[0].node);
             let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
             let (op, x) = past_table(&model, node.inputs[0], op);
@@ -643,16 +643,13 @@ mod tests {
             let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
             for vnni in paths {
                 let got = op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap();
-                // SAFETY: u8 (quantised) output.
-                let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+                let got = bytes_of(&got);
                 assert!(got == want, "{s:?}, vnni {vnni}: other bytes");
             }
             let mut fast = model.clone();
             crate::ops::accelerate(&mut fast).unwrap();
             assert!(fast.nodes().iter().all(|n| n.name != "lut"), "the table's node is gone");
-            let got = fast.into_runnable().unwrap().run(tvec![input]).unwrap().remove(0);
-            // SAFETY: u8 (quantised) output.
-            let got = unsafe { got.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+            let got = bytes_of(&fast.into_runnable().unwrap().run(tvec![input]).unwrap()[0]);
             assert!(got == want, "{s:?}: other bytes in the accelerated model");
         }
     }
@@ -674,10 +671,7 @@ mod tests {
             let y = model.wire_node("dequant", dq, &[y]).unwrap();
             let y = model.wire_node("hswish", hard_swish(), &y).unwrap();
             model.select_output_outlets(&y).unwrap();
-            let n = s.ci * s.h * s.w;
-            let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
-            let bytes: Vec<u8> = (0..n).map(|i| ((i * 7919) % 256) as u8).collect();
-            let input = Tensor::from_shape(&x_shape, &bytes).unwrap().into_tvalue();
+            let input = input_for(&s, batch);
             let want = model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
             let want: Vec<u32> =
                 want.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().iter().map(|v| v.to_bits()).collect();
