@@ -30,7 +30,7 @@ use super::conv::ConvShape;
 use super::dwconv::DepthwiseConv;
 #[cfg(target_arch = "x86_64")]
 use super::dwqconv_kernel;
-use super::qconv::{konst_values, sum_bound};
+use super::qconv::{konst_values, requant_scales, sum_bound, weight_scales};
 use super::qconv_kernel::{exact_fits, requant_one};
 use super::quant::DequantizeU8;
 use super::{all_ones, output_tensor_written, pads_2d};
@@ -489,7 +489,7 @@ pub(crate) fn depthwise_q(model: &TypedModel, node: &TypedNode) -> TractResult<O
         konst_values::<i32>(facts[3], 1)?,
         konst_values::<f32>(facts[4], 1)?,
         konst_values::<i32>(facts[5], c)?,
-        konst_values::<f32>(facts[6], c)?,
+        weight_scales(facts[6], c)?,
         konst_values::<i32>(facts[7], 1)?,
         konst_values::<f32>(facts[8], 1)?,
     );
@@ -501,7 +501,7 @@ pub(crate) fn depthwise_q(model: &TypedModel, node: &TypedNode) -> TractResult<O
     let kernel = kernel.try_as_plain_ram()?;
     // SAFETY: the kernel's datum type is i8, possibly with quantisation parameters (checked).
     let kernel = unsafe { kernel.as_slice_unchecked::<i8>() };
-    let scale: Vec<f32> = k_scale.iter().map(|&k| x_scale[0] * k / y_scale[0]).collect();
+    let scale = requant_scales(x_scale[0], &k_scale, y_scale[0], c);
     let op = DepthwiseQConv::new(shape, batch, kernel, &bias, (x0, &scale, y0), node.outputs[0].fact.datum_type)?;
     // tract's exact product is only ours within these bounds (see [`exact_fits`]).
     if op.exact && !exact_fits(scale[0], sum_bound(kernel, &bias, kh * kw)) {
@@ -513,7 +513,6 @@ pub(crate) fn depthwise_q(model: &TypedModel, node: &TypedNode) -> TractResult<O
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tract_nnef::tract_core::ops::cnn::{PaddingSpec, PoolSpec};
 
     /// tract's quantised depthwise `Conv` of `s` on `batch` (NCHW) or CHW data, with input zero
     /// point 117, output zero point 100, and per-channel weight scales (`one_scale`: the same
@@ -521,46 +520,18 @@ mod tests {
     /// (tract's `LookupTable`).
     fn tract_model(s: &ConvShape, batch: bool, one_scale: bool, table: Option<&[u8]>) -> TypedModel {
         let c = s.ci;
-        let mut model = TypedModel::default();
-        let x_shape: TVec<usize> = if batch { tvec![1, c, s.h, s.w] } else { tvec![c, s.h, s.w] };
-        let mut x = model.add_source("x", u8::fact(&x_shape)).unwrap();
-        if let Some(t) = table {
-            let lut = tract_nnef::tract_core::ops::quant::lookup_table(tract_linalg::routines::lut_u8(t).unwrap());
-            x = model.wire_node("lut", lut, &[x]).unwrap()[0];
-        }
-        let w: Vec<i8> = (0..c * s.kh * s.kw).map(|i| ((i * 104729) % 255) as i32 as i8).collect();
-        let konst = |name: &str, t: Tensor, model: &mut TypedModel| model.add_const(name, t).unwrap();
-        let w = konst("w", Tensor::from_shape(&[c, 1, s.kh, s.kw], &w).unwrap(), &mut model);
         let bias: Vec<i32> = (0..c as i32).map(|o| 300 * o - 2000).collect();
-        let b = konst("b", Tensor::from_shape(&[c], &bias).unwrap(), &mut model);
         let taps = (s.kh * s.kw) as f32;
         let w_scale: Vec<f32> = (0..c).map(|o| if one_scale { 0.4 } else { 0.2 + 0.05 * o as f32 }).collect();
         let w_scale: Vec<f32> = w_scale.iter().map(|v| v / (taps.sqrt() * 127.0)).collect();
-        let scalars = [
-            tensor0(117i32),
-            tensor0(0.02f32),
-            tensor0(0i32),
-            if one_scale { tensor0(w_scale[0]) } else { tensor1(&w_scale) },
-            tensor0(100i32),
-            tensor0(0.01f32),
-        ];
-        let mut inputs = vec![x, w, b];
-        for (i, t) in scalars.into_iter().enumerate() {
-            inputs.push(konst(&format!("q{i}"), t, &mut model));
-        }
-        let pool_spec = PoolSpec {
-            data_format: if batch { DataFormat::NCHW } else { DataFormat::CHW },
-            kernel_shape: tvec![s.kh, s.kw],
-            padding: PaddingSpec::ExplicitOnnxPool(tvec![s.pad[0], s.pad[1]], tvec![s.pad[2], s.pad[3]], false),
-            dilations: None,
-            strides: Some(tvec![s.stride, s.stride]),
-            input_channels: c,
-            output_channels: c,
-        };
-        let op = Conv { pool_spec, kernel_fmt: KernelFormat::OIHW, group: c, q_params: Some(u8::datum_type()) };
-        let y = model.wire_node("dw", op, &inputs).unwrap();
-        model.select_output_outlets(&y).unwrap();
-        model
+        let w_scale = if one_scale { tensor0(w_scale[0]) } else { tensor1(&w_scale) };
+        tract_model_with(s, batch, (&bias, w_scale, 0.01), table)
+    }
+
+    /// [`tract_model`] with the given biases, weight scales (one or one per channel) and output
+    /// scale.
+    fn tract_model_with(s: &ConvShape, batch: bool, params: (&[i32], Tensor, f32), table: Option<&[u8]>) -> TypedModel {
+        super::super::qconv::tract_q_conv(s, s.ci, batch, params, table)
     }
 
     /// The tests' u8 input for `s`: NCHW (`batch`) or CHW bytes spread over 0..=255.
@@ -568,6 +539,12 @@ mod tests {
         let x_shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
         let bytes: Vec<u8> = (0..s.ci * s.h * s.w).map(|i| ((i * 7919) % 256) as u8).collect();
         Tensor::from_shape(&x_shape, &bytes).unwrap().into_tvalue()
+    }
+
+    /// `model` run by tract alone as a plan runs it: decluttered and optimised (its requantisation
+    /// scales are then those of [`requant_scales`]; its unoptimised eval computes them otherwise).
+    fn tract_run(model: &TypedModel, input: &TValue) -> TVec<TValue> {
+        model.clone().into_optimized().unwrap().into_runnable().unwrap().run(tvec![input.clone()]).unwrap()
     }
 
     /// The bytes of a u8 (possibly quantised) tensor.
@@ -598,7 +575,7 @@ mod tests {
         for (s, batch, one_scale) in cases {
             let model = tract_model(&s, batch, one_scale, None);
             let input = input_for(&s, batch);
-            let want = bytes_of(&model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap()[0]);
+            let want = bytes_of(&tract_run(&model, &input)[0]);
             let spread: std::collections::HashSet<u8> = want.iter().copied().collect();
             assert!(
                 spread.len() > (want.len() / 5).min(50),
@@ -635,7 +612,7 @@ mod tests {
         ] {
             let model = tract_model(&s, batch, false, Some(&table));
             let input = input_for(&s, batch);
-            let want = bytes_of(&model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap()[0]);
+            let want = bytes_of(&tract_run(&model, &input)[0]);
             let node = model.node(model.output_outlets().unwrap()[0].node);
             let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
             let (op, x) = past_table(&model, node.inputs[0], op);
@@ -672,10 +649,10 @@ mod tests {
             let y = model.wire_node("hswish", hard_swish(), &y).unwrap();
             model.select_output_outlets(&y).unwrap();
             let input = input_for(&s, batch);
-            let want = model.clone().into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
+            let want = tract_run(&model, &input).remove(0);
             let want: Vec<u32> =
                 want.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().iter().map(|v| v.to_bits()).collect();
-            let conv = model.node_by_name("dw").unwrap();
+            let conv = model.node_by_name("conv").unwrap();
             let op = depthwise_q(&model, conv).unwrap().expect("a DepthwiseQConv");
             let (dq, chain) = dequantized_after(&model, conv).unwrap().expect("the dequantiser after it");
             assert_eq!(chain.len(), 2, "the dequantiser and the hard-swish");
@@ -694,6 +671,55 @@ mod tests {
             let got: Vec<u32> =
                 got.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().iter().map(|v| v.to_bits()).collect();
             assert!(got == want, "{s:?}: other values in the accelerated model");
+        }
+    }
+
+    /// Per-channel scales as tract's plan has them: with fewer than 16 channels `x · k / y`,
+    /// with 16 and more `(k · x) · (1 / y)` ([`requant_scales`]). Each channel's weight scale
+    /// is one where the two forms part by a unit in the last place, and its bias a sum whose
+    /// products with the two round apart; the input is the zero point over its first half
+    /// (outputs there: the biases requantised), spread bytes below. Weight scales one per
+    /// channel, and one per channel all equal (tract's exact product).
+    #[test]
+    fn per_channel_scales_are_tract_s_to_the_last_bit() {
+        let (x_scale, y_scale) = (0.02f32, 0.0137f32);
+        let division = |k: f32| x_scale * k / y_scale;
+        let reciprocal = |k: f32| (k * x_scale) * (1.0 / y_scale);
+        let (division, reciprocal): (&dyn Fn(f32) -> f32, &dyn Fn(f32) -> f32) = (&division, &reciprocal);
+        let parting = |exact| super::super::qconv_kernel::parting_scales(x_scale, y_scale, exact);
+        let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
+        for (c, many) in [(12, false), (20, true)] {
+            let s = ConvShape { ci: c, h: 16, w: 21, co: c, kh: 3, kw: 3, pad: [1; 4], stride: 1 };
+            for equal in [false, true] {
+                let (k_scale, bias): (Vec<f32>, Vec<i32>) = match equal {
+                    false => parting(false).take(c).unzip(),
+                    true => parting(true).take(1).flat_map(|p| std::iter::repeat_n(p, c)).unzip(),
+                };
+                assert_eq!(k_scale.len(), c, "enough scales where the forms part");
+                let model = tract_model_with(&s, false, (&bias, tensor1(&k_scale), y_scale), None);
+                let mut bytes: Vec<u8> = (0..c * s.h * s.w).map(|i| ((i * 7919) % 256) as u8).collect();
+                for plane in bytes.chunks_exact_mut(s.h * s.w) {
+                    plane[..s.h / 2 * s.w].fill(117);
+                }
+                let input = Tensor::from_shape(&[c, s.h, s.w], &bytes).unwrap().into_tvalue();
+                let want = bytes_of(&tract_run(&model, &input)[0]);
+                // The case tells the forms apart: at the zero point tract's bytes are the
+                // expected form's, not the other's.
+                let at_zero: Vec<u8> = want.chunks_exact(s.h * s.w).map(|p| p[s.w + 1]).collect();
+                let rounded = |f: &dyn Fn(f32) -> f32| -> Vec<u8> {
+                    k_scale.iter().zip(&bias).map(|(&k, &b)| requant_one(b, f(k), equal, 100)).collect()
+                };
+                let (expected, other) = if many { (reciprocal, division) } else { (division, reciprocal) };
+                assert_eq!(at_zero, rounded(expected), "{c} channels, equal {equal}: tract's bytes");
+                assert_ne!(at_zero, rounded(other), "{c} channels, equal {equal}: the forms part");
+                let node = model.node(model.output_outlets().unwrap()[0].node);
+                let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
+                assert_eq!(op.exact, equal);
+                for &vnni in &paths {
+                    let got = bytes_of(&op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap());
+                    assert!(got == want, "{c} channels, equal {equal}, vnni {vnni}: other bytes");
+                }
+            }
         }
     }
 }

@@ -636,6 +636,32 @@ fn has_words_path() -> bool {
 }
 
 /// A scalar (or a vector of `n`) constant as f32 / i32 values.
+/// A quantised layer's weight scales as its graph holds them: one (per-tensor weights) or one
+/// per output channel (`co`); `None` if not constant or of another length.
+pub(super) fn weight_scales(fact: &TypedFact, co: usize) -> TractResult<Option<Vec<f32>>> {
+    Ok(konst_values::<f32>(fact, 1)?.or(konst_values::<f32>(fact, co)?))
+}
+
+/// Each of `co` output channels' requantisation scale `x_scale · k_scale / y_scale`, bit for
+/// bit as tract's optimised plan has it (one unit in the last place moves a sum across a half,
+/// and a byte). tract wires the product and the quotient of the scales while it optimises and
+/// folds an op at once only where each of its constant inputs holds fewer than 16 values; a
+/// quotient left standing is turned into a product with the reciprocal by the declutter pass
+/// that comes before the constants are folded. So one weight scale, or fewer than 16: a true
+/// division, `x · k / y`; 16 and more: `(k · x) · (1 / y)` (NanoTrack's depthwise and head
+/// layers: a few channels of each a unit apart, one sum in block 2 on a half).
+pub(super) fn requant_scales(x_scale: f32, k_scale: &[f32], y_scale: f32, co: usize) -> Vec<f32> {
+    match k_scale {
+        [k] => vec![x_scale * k / y_scale; co],
+        _ if k_scale.len() < EAGER_FOLD_VOLUME => k_scale.iter().map(|k| x_scale * k / y_scale).collect(),
+        _ => k_scale.iter().map(|k| (k * x_scale) * (1.0 / y_scale)).collect(),
+    }
+}
+
+/// tract's `TypedModel::wire_node` evaluates an op at once when each of its constant inputs
+/// has fewer values than this.
+const EAGER_FOLD_VOLUME: usize = 16;
+
 pub(super) fn konst_values<T: Datum + Copy>(fact: &TypedFact, n: usize) -> TractResult<Option<Vec<T>>> {
     let Some(k) = &fact.konst else { return Ok(None) };
     let k = k.cast_to::<T>()?;
@@ -679,7 +705,7 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
         konst_values::<i32>(facts[3], 1)?,
         konst_values::<f32>(facts[4], 1)?,
         konst_values::<i32>(facts[5], co)?,
-        konst_values::<f32>(facts[6], co)?,
+        weight_scales(facts[6], co)?,
         konst_values::<i32>(facts[7], 1)?,
         konst_values::<f32>(facts[8], 1)?,
     );
@@ -890,7 +916,8 @@ fn matmul_shape(node: &TypedNode, facts: &[&TypedFact]) -> Option<(ConvShape, Pr
 pub(crate) struct QuantParams {
     pub x0: u8,
     pub x_scale: f32,
-    /// One per output channel.
+    /// One (per-tensor weights) or one per output channel, as the graph holds them (tract
+    /// computes the two kinds' scales apart: [`requant_scales`]).
     pub k_scale: Vec<f32>,
     pub y0: u8,
     pub y_scale: f32,
@@ -907,7 +934,7 @@ impl PackedQConv {
     ) -> TractResult<Self> {
         let (co, ci, kh, kw) = (shape.co, shape.ci, shape.kh, shape.kw);
         ensure!(
-            kernel.len() == co * ci * kh * kw && bias.len() == co && q.k_scale.len() == co,
+            kernel.len() == co * ci * kh * kw && bias.len() == co && (q.k_scale.len() == 1 || q.k_scale.len() == co),
             "PackedQConv: parameters for {shape:?}"
         );
         let groups = ci.div_ceil(4) * kh * kw;
@@ -917,7 +944,8 @@ impl PackedQConv {
         let mut by_channel = vec![[0i8; 4]; co * groups];
         let mut offset = vec![0i32; blocks * ROWS];
         let mut wsum = vec![0i32; blocks * ROWS];
-        let mut scale = vec![0f32; blocks * ROWS];
+        let mut scale = requant_scales(q.x_scale, &q.k_scale, q.y_scale, co);
+        scale.resize(blocks * ROWS, 0.0);
         for o in 0..co {
             let mut sum = 0i32;
             for c in 0..ci {
@@ -933,7 +961,6 @@ impl PackedQConv {
             }
             offset[o] = bias[o] - q.x0 as i32 * sum;
             wsum[o] = sum;
-            scale[o] = q.x_scale * q.k_scale[o] / q.y_scale;
         }
         // Tract's criterion for its exact rounding: every value of the scale the same.
         let exact = scale[..co].iter().all(|v| v.to_bits() == scale[0].to_bits());
@@ -979,6 +1006,53 @@ impl PackedQConv {
             matmul: None,
         })
     }
+}
+
+/// tract's quantised `Conv` of `s` in `group`s (1, or `s.ci` for a depthwise one) on NCHW
+/// (`batch`) or CHW data, wired in a model of its own: i8 weights spread over the bytes, input
+/// zero point 117 and scale 0.02, weight zero point 0, output zero point 100; `bias`, the
+/// weight scales (one, or one per output channel) and the output scale as given; the input
+/// through `table` where given (tract's `LookupTable`). The tests' reference for the
+/// operators that replace it.
+#[cfg(test)]
+pub(super) fn tract_q_conv(
+    s: &ConvShape,
+    group: usize,
+    batch: bool,
+    (bias, w_scale, y_scale): (&[i32], Tensor, f32),
+    table: Option<&[u8]>,
+) -> TypedModel {
+    use tract_nnef::tract_core::ops::cnn::{PaddingSpec, PoolSpec};
+    let mut model = TypedModel::default();
+    let x_shape: TVec<usize> = if batch { tvec![1, s.ci, s.h, s.w] } else { tvec![s.ci, s.h, s.w] };
+    let mut x = model.add_source("x", u8::fact(&x_shape)).unwrap();
+    if let Some(t) = table {
+        let lut = tract_nnef::tract_core::ops::quant::lookup_table(tract_linalg::routines::lut_u8(t).unwrap());
+        x = model.wire_node("lut", lut, &[x]).unwrap()[0];
+    }
+    let per_group = s.ci / group;
+    let w: Vec<i8> = (0..s.co * per_group * s.kh * s.kw).map(|i| ((i * 104729) % 255) as i32 as i8).collect();
+    let konst = |name: &str, t: Tensor, model: &mut TypedModel| model.add_const(name, t).unwrap();
+    let w = konst("w", Tensor::from_shape(&[s.co, per_group, s.kh, s.kw], &w).unwrap(), &mut model);
+    let b = konst("b", Tensor::from_shape(&[s.co], bias).unwrap(), &mut model);
+    let scalars = [tensor0(117i32), tensor0(0.02f32), tensor0(0i32), w_scale, tensor0(100i32), tensor0(y_scale)];
+    let mut inputs = vec![x, w, b];
+    for (i, t) in scalars.into_iter().enumerate() {
+        inputs.push(konst(&format!("q{i}"), t, &mut model));
+    }
+    let pool_spec = PoolSpec {
+        data_format: if batch { DataFormat::NCHW } else { DataFormat::CHW },
+        kernel_shape: tvec![s.kh, s.kw],
+        padding: PaddingSpec::ExplicitOnnxPool(tvec![s.pad[0], s.pad[1]], tvec![s.pad[2], s.pad[3]], false),
+        dilations: None,
+        strides: Some(tvec![s.stride, s.stride]),
+        input_channels: s.ci,
+        output_channels: s.co,
+    };
+    let op = Conv { pool_spec, kernel_fmt: KernelFormat::OIHW, group, q_params: Some(u8::datum_type()) };
+    let y = model.wire_node("conv", op, &inputs).unwrap();
+    model.select_output_outlets(&y).unwrap();
+    model
 }
 
 #[cfg(test)]
@@ -1040,7 +1114,7 @@ mod tests {
         let bias: Vec<i32> = (0..s.co as i32).map(|o| 100 * o - 500).collect();
         let k_scale: Vec<f32> =
             (0..s.co).map(|o| (0.001 + 0.0001 * o as f32) * 9.0 / (s.ci * s.kh * s.kw) as f32).collect();
-        let scale: Vec<f32> = k_scale.iter().map(|k| 0.02 * k / 0.05).collect();
+        let scale = requant_scales(0.02, &k_scale, 0.05, s.co);
         let want = direct(&s, &input, &kernel, &bias, (&scale, false));
         let unsaturated = want.iter().filter(|&&v| v != 0 && v != 255).count();
         assert!(unsaturated > want.len() / 2, "most outputs should not saturate: {unsaturated} of {}", want.len());
@@ -1146,7 +1220,7 @@ mod tests {
                     "{s:?}: every output at the zero point rounds apart: {apart}"
                 );
             }
-            let q = QuantParams { x0: 7, x_scale, k_scale: vec![w_scale; s.co], y0: 100, y_scale };
+            let q = QuantParams { x0: 7, x_scale, k_scale: vec![w_scale], y0: 100, y_scale };
             every_path(&s, &input, &kernel, &bias, q, &want);
         }
     }
@@ -1165,6 +1239,61 @@ mod tests {
         check(ConvShape { ci: 24, h: 9, w: 13, co: 48, kh: 1, kw: 1, pad: [0; 4], stride: 1 });
         // 96 outputs: two blocks of 48 channels in lanes (on VNNI), 600 tap groups in 5 passes.
         check(ConvShape { ci: 96, h: 9, w: 12, co: 96, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 });
+    }
+
+    /// Per-channel scales as tract's plan has them ([`requant_scales`]): with 12 output
+    /// channels `x · k / y`, with 20 `(k · x) · (1 / y)`. Each channel's weight scale is one
+    /// where the two forms part by a unit in the last place, and its bias a sum whose products
+    /// with the two round apart; the input is the zero point over its first half (outputs
+    /// there: the biases requantised). Weight scales one per channel, and one per channel all
+    /// equal (tract's exact product). Against tract's optimised plan, through `accelerate`.
+    #[test]
+    fn per_channel_scales_are_tract_s_to_the_last_bit() {
+        use super::super::qconv_kernel::parting_scales;
+        if !has_words_path() {
+            eprintln!("NOTE: no AVX-512 VNNI, AVX2 or aarch64 dot product here (or PRL_ISA caps it): PackedQConv's per-channel scales are NOT tested on this machine");
+            return;
+        }
+        let (x_scale, y_scale) = (0.02f32, 0.0137f32);
+        let division = |k: &f32| x_scale * k / y_scale;
+        let reciprocal = |k: &f32| (k * x_scale) * (1.0 / y_scale);
+        for co in [12, 20] {
+            let s = ConvShape { ci: 8, h: 10, w: 13, co, kh: 3, kw: 3, pad: [1; 4], stride: 1 };
+            for exact in [false, true] {
+                let (k_scale, bias): (Vec<f32>, Vec<i32>) = match exact {
+                    false => parting_scales(x_scale, y_scale, false).take(co).unzip(),
+                    true => {
+                        parting_scales(x_scale, y_scale, true).take(1).flat_map(|p| std::iter::repeat_n(p, co)).unzip()
+                    }
+                };
+                assert_eq!(k_scale.len(), co, "enough scales where the forms part");
+                let model = tract_q_conv(&s, 1, true, (&bias, tensor1(&k_scale), y_scale), None);
+                let mut bytes: Vec<u8> = (0..s.ci * s.h * s.w).map(|i| ((i * 7919) % 256) as u8).collect();
+                for plane in bytes.chunks_exact_mut(s.h * s.w) {
+                    plane[..s.h / 2 * s.w].fill(117);
+                }
+                let input = Tensor::from_shape(&[1, s.ci, s.h, s.w], &bytes).unwrap().into_tvalue();
+                let run = |m: TypedModel| -> Vec<u8> {
+                    let out = m.into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
+                    // SAFETY: the output is u8 (possibly quantised).
+                    unsafe { out.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() }
+                };
+                let want = run(model.clone().into_optimized().unwrap());
+                // At the zero point tract's bytes are the biases requantised by the expected
+                // form's scales, not by the other's.
+                let at_zero: Vec<u8> = want.chunks_exact(s.h * s.w).map(|p| p[s.w + 1]).collect();
+                let by = |f: &dyn Fn(&f32) -> f32| -> Vec<u8> {
+                    k_scale.iter().zip(&bias).map(|(k, &b)| requant_one(b, f(k), exact, 100)).collect()
+                };
+                let (expected, other) =
+                    if co < 16 { (by(&division), by(&reciprocal)) } else { (by(&reciprocal), by(&division)) };
+                assert_eq!(at_zero, expected, "{co} channels, exact {exact}: tract's bytes");
+                assert_ne!(at_zero, other, "{co} channels, exact {exact}: the forms part");
+                let mut fast = model.clone();
+                assert_eq!(crate::ops::accelerate(&mut fast).unwrap().int8_convolutions, 1, "{s:?}");
+                assert!(run(fast) == want, "{co} channels, exact {exact}: other bytes");
+            }
+        }
     }
 
     /// The quantised `EinSum` tract makes of a 1x1 convolution (HMG's patch embeddings) becomes

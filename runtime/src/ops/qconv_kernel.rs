@@ -44,6 +44,21 @@ pub(super) fn tie_sums(scale: f32) -> Vec<i32> {
     (-limit..limit).filter(|&x| (x as f32 * scale).round_ties_even() as i32 != x * scaler).collect()
 }
 
+/// Weight scales `k` whose requantisation scales by tract's two forms (`x · k / y` and `(k · x)
+/// · (1 / y)`, see [`super::qconv::requant_scales`]) part, each with a sum whose products
+/// with the two round apart (rounded exactly, as tract's `Scaler`, with `exact`), outputs
+/// (zero point 100) within 10 of the ends: the test cases that tell the forms apart.
+#[cfg(test)]
+pub(super) fn parting_scales(x_scale: f32, y_scale: f32, exact: bool) -> impl Iterator<Item = (f32, i32)> {
+    (0..20000).filter_map(move |i| {
+        let k = 0.0005 + 0.0000013 * i as f32;
+        let (d, r) = (x_scale * k / y_scale, (k * x_scale) * (1.0 / y_scale));
+        let limit = (90.0 / r) as i32;
+        let b = (-limit..limit).find(|&b| requant_one(b, d, exact, 100) != requant_one(b, r, exact, 100))?;
+        Some((k, b))
+    })
+}
+
 /// `out[i] = requant_one(sums[i] + offset, scale, exact, y0)`: on AVX-512 where [`crate::isa`]
 /// allows it, else on AVX2.
 ///
