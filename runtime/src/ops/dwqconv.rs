@@ -31,7 +31,7 @@ use super::dwconv::DepthwiseConv;
 #[cfg(target_arch = "x86_64")]
 use super::dwqconv_kernel;
 use super::qconv::{konst_values, requant_scales, sum_bound, weight_scales};
-use super::qconv_kernel::{exact_fits, requant_one};
+use super::qconv_kernel::{exact_fits, requantise};
 use super::quant::DequantizeU8;
 use super::{all_ones, output_tensor_written, pads_2d};
 #[cfg(target_arch = "x86_64")]
@@ -62,7 +62,8 @@ pub struct DepthwiseQConv {
     bias: Arc<Vec<i32>>,
     /// Per channel `x_scale · w_scale / y_scale`.
     scale: Arc<Vec<f32>>,
-    /// One scale for every channel: tract's exact fixed-point product ([`requant_one`]).
+    /// One scale for every channel: tract's exact fixed-point product
+    /// ([`super::qconv_kernel::requant_one`]).
     exact: bool,
     x0: u8,
     y0: u8,
@@ -305,6 +306,7 @@ impl DepthwiseQConv {
     /// over tract's threads, each group with one padded plane (its borders `x0`).
     #[cfg(target_arch = "x86_64")]
     fn run_vnni(&self, input: &Tensor, shape: &[usize]) -> TractResult<Tensor> {
+        use super::with_bytes;
         let s = &self.shape;
         let c = s.ci;
         let input = input.try_as_plain_ram()?;
@@ -321,11 +323,14 @@ impl DepthwiseQConv {
             None => unsafe {
                 let mut out = output_tensor_written(shape, |out: &mut [u8]| {
                     par_chunks(out, group * plane, |g, dst| {
-                        let mut pad = vec![self.x0; self.padded_len()];
-                        for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
-                            let p = g * group + k;
-                            self.channel_vnni(p % c, src(p), &mut pad, d);
-                        }
+                        with_bytes(self.padded_len(), |pad| {
+                            // The borders read x0; the rows are copied in for each channel.
+                            pad.fill(self.x0);
+                            for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                                let p = g * group + k;
+                                self.channel_vnni(p % c, src(p), pad, d);
+                            }
+                        })
                     });
                     Ok(())
                 })?;
@@ -336,13 +341,15 @@ impl DepthwiseQConv {
             Some(dq) => unsafe {
                 output_tensor_written(shape, |out: &mut [f32]| {
                     par_chunks(out, group * plane, |g, dst| {
-                        let mut pad = vec![self.x0; self.padded_len()];
-                        let mut bytes = vec![0u8; plane];
-                        for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
-                            let p = g * group + k;
-                            self.channel_vnni(p % c, src(p), &mut pad, &mut bytes);
-                            dq.apply(&bytes, d);
-                        }
+                        with_bytes(self.padded_len() + plane, |buf| {
+                            let (pad, bytes) = buf.split_at_mut(self.padded_len());
+                            pad.fill(self.x0);
+                            for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
+                                let p = g * group + k;
+                                self.channel_vnni(p % c, src(p), pad, bytes);
+                                dq.apply(bytes, d);
+                            }
+                        })
                     });
                     Ok(())
                 })
@@ -354,20 +361,6 @@ impl DepthwiseQConv {
     #[cfg(not(target_arch = "x86_64"))]
     fn run_vnni(&self, _: &Tensor, _: &[usize]) -> TractResult<Tensor> {
         bail!("DepthwiseQConv: VNNI is x86_64's")
-    }
-}
-
-/// `out[i] = requant_one(sums[i] + offset, ...)`: the vector form where [`crate::isa`] allows
-/// it (AVX2 on x86, NEON on aarch64), else the scalar one.
-fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
-    let vector = cfg!(target_arch = "aarch64") || crate::isa().avx2_fma;
-    if vector {
-        // SAFETY: on x86 the CPU has AVX2 and FMA (checked above); aarch64's form needs nothing.
-        unsafe { super::qconv_kernel::requantise(sums, offset, scale, exact, y0, out) };
-    } else {
-        for (o, &v) in out.iter_mut().zip(sums) {
-            *o = requant_one(v + offset, scale, exact, y0);
-        }
     }
 }
 
@@ -512,6 +505,7 @@ pub(crate) fn depthwise_q(model: &TypedModel, node: &TypedNode) -> TractResult<O
 
 #[cfg(test)]
 mod tests {
+    use super::super::qconv_kernel::requant_one;
     use super::*;
 
     /// tract's quantised depthwise `Conv` of `s` on `batch` (NCHW) or CHW data, with input zero

@@ -415,6 +415,26 @@ fn with_words<T: Word, R>(len: usize, f: impl FnOnce(&mut [T]) -> R) -> R {
     lend(&WORDS, len, f)
 }
 
+/// Run `f` on the calling thread's buffer of `len` bytes, kept from call to call (it grows to
+/// the largest `len` asked for): the bytes are whatever its last use left, so `f` writes before
+/// it reads. The integer depthwise layers' padded planes (allocated per channel group and
+/// frame before; x86's alone for now).
+#[cfg(target_arch = "x86_64")]
+fn with_bytes<R>(len: usize, f: impl FnOnce(&mut [u8]) -> R) -> R {
+    thread_local! {
+        static BYTES: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+    }
+    BYTES.with(|b| match b.try_borrow_mut() {
+        Ok(mut v) => {
+            if v.len() < len {
+                v.resize(len, 0);
+            }
+            f(&mut v[..len])
+        }
+        Err(_) => f(&mut vec![0u8; len]),
+    })
+}
+
 /// The runs `(start, len)` of a `len`-long buffer that `write` leaves as they were: what
 /// [`with_padded`] must zero for a padded input that `write` fills (found once, when an
 /// operator is made, by writing into a buffer of NaNs).

@@ -191,8 +191,7 @@ impl PackedQConv {
     fn requant(&self, path: WordsPath, o: usize, sums: &[i32], bytes: &mut [u8]) {
         // The SDOT path's sums lack 128·Σw (its inputs are x − 128).
         let flip = if path == WordsPath::Sdot { 128 } else { 0 };
-        // SAFETY: on x86 the op is only made where the CPU has AVX2 at least ([`packed_q`]).
-        unsafe { requantise(sums, self.offset[o] + flip * self.wsum[o], self.scale[o], self.exact, self.y0, bytes) }
+        requantise(sums, self.offset[o] + flip * self.wsum[o], self.scale[o], self.exact, self.y0, bytes)
     }
 
     /// [`EvalOp::eval`] of a matrix product ([`Product`]).

@@ -59,20 +59,26 @@ pub(super) fn parting_scales(x_scale: f32, y_scale: f32, exact: bool) -> impl It
     })
 }
 
-/// `out[i] = requant_one(sums[i] + offset, scale, exact, y0)`: on AVX-512 where [`crate::isa`]
-/// allows it, else on AVX2.
-///
-/// # Safety
-/// The CPU has AVX2 and FMA (every x86 CPU a [`super::PackedQConv`] is made on).
-#[cfg(target_arch = "x86_64")]
-pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
-    if crate::isa().avx512 {
-        // SAFETY: the CPU has AVX-512F.
-        unsafe { requantise_avx512(sums, offset, scale, exact, y0, out) }
-    } else {
-        // SAFETY: the caller guarantees AVX2 and FMA.
-        unsafe { requantise_avx2(sums, offset, scale, exact, y0, out) }
+/// `out[i] = requant_one(sums[i] + offset, scale, exact, y0)`, bit for bit, on the widest form
+/// [`crate::isa`] allows: 16 lanes on AVX-512, 8 on AVX2, 16 on NEON, else the portable loop.
+/// Every integer operator's requantisation goes through here.
+pub(super) fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let isa = crate::isa();
+        if isa.avx512 {
+            // SAFETY: the CPU has AVX-512F.
+            return unsafe { requantise_avx512(sums, offset, scale, exact, y0, out) };
+        }
+        if isa.avx2_fma {
+            // SAFETY: the CPU has AVX2 and FMA.
+            return unsafe { requantise_avx2(sums, offset, scale, exact, y0, out) };
+        }
     }
+    #[cfg(target_arch = "aarch64")]
+    requantise_neon(sums, offset, scale, exact, y0, out);
+    #[cfg(not(target_arch = "aarch64"))]
+    requantise_portable(sums, offset, scale, exact, y0, out);
 }
 
 /// [`requantise`] on 8 lanes (AVX2), bit for bit [`requant_one`].
@@ -214,15 +220,12 @@ pub(super) fn requant_lanes(
     _mm512_cvttps_epi32(f)
 }
 
-/// `out[i] = requant_one(sums[i] + offset, scale, exact, y0)` on NEON, sixteen at a time (the
-/// compiler's own vectorisation of the f32 form took 52 instructions for sixteen, and left the
-/// exact form scalar in tract's fixed point): the scalar formula's operations in its order, and
-/// the exact product as [`exact_avx2`] makes it (`FMLS` gives the product's error).
-///
-/// # Safety
-/// None needed (NEON is part of the aarch64 baseline); `unsafe` for the x86 form's signature.
+/// [`requantise`] on NEON, sixteen at a time (the compiler's own vectorisation of the f32 form
+/// took 52 instructions for sixteen, and left the exact form scalar in tract's fixed point):
+/// the scalar formula's operations in its order, and the exact product as [`exact_avx2`] makes
+/// it (`FMLS` gives the product's error).
 #[cfg(target_arch = "aarch64")]
-pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
+fn requantise_neon(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
     use std::arch::aarch64::*;
     let n = sums.len().min(out.len());
     let full = n / 16 * 16;
@@ -278,13 +281,10 @@ fn requant4(
     }
 }
 
-/// `out[i] = requant_one(sums[i] + offset, scale, exact, y0)`, the portable form (the f32
-/// product vectorised by the compiler; the exact one in tract's fixed point).
-///
-/// # Safety
-/// None needed; `unsafe` for the same signature as the x86 form.
-#[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
-pub(super) unsafe fn requantise(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
+/// [`requantise`], the portable form (the f32 product vectorised by the compiler; the exact one
+/// in tract's fixed point).
+#[cfg(not(target_arch = "aarch64"))]
+fn requantise_portable(sums: &[i32], offset: i32, scale: f32, exact: bool, y0: u8, out: &mut [u8]) {
     // One loop per mode, so that the f32 one stays free of the fixed-point branch and vectorises.
     if exact {
         for (o, &s) in out.iter_mut().zip(sums) {
@@ -661,11 +661,8 @@ mod tests {
     /// with and without a remainder past the vectors.
     #[test]
     fn requantise_equals_the_scalar_formula() {
-        #[cfg(target_arch = "x86_64")]
-        if !super::super::avx2_fma() {
-            eprintln!("NOTE: no AVX2 + FMA here: the vectorised requantisation is NOT tested on this machine");
-            return;
-        }
+        // The form `PRL_ISA` leaves (AVX-512, AVX2, NEON or the portable loop): each ISA run of
+        // the tests reaches another.
         let scale = 0.0069588f32 * (0.0007929764 / 32.0) / 0.0028860883;
         let ties = tie_sums(scale);
         assert!(ties.len() >= 8, "the case needs sums that round apart: {}", ties.len());
@@ -676,8 +673,7 @@ mod tests {
             for n in [0usize, 1, 15, 16, 17, 33, sums.len()] {
                 let want: Vec<u8> = sums[..n].iter().map(|&s| requant_one(s + offset, scale, exact, 100)).collect();
                 let mut got = vec![0xAAu8; n];
-                // SAFETY: the CPU has AVX2 and FMA (checked above) on x86; nothing needed elsewhere.
-                unsafe { requantise(&sums[..n], offset, scale, exact, 100, &mut got) };
+                requantise(&sums[..n], offset, scale, exact, 100, &mut got);
                 assert_eq!(got, want, "{n} sums, exact {exact}, offset {offset}");
             }
         }
