@@ -80,11 +80,12 @@ check() {
     "$host" import nanotrack --out "$work/nanotrack-model"
     "$host" compile --model "$work/nanotrack-model" --out "$work/nanotrack-plan"
     "$host" quantize --plan "$work/nanotrack-plan" --calib "$calib" --frames-per-seq 16 --method minmax \
-        --budget 4 --min-macs 1000000 --min-out-channels 16 --out "$work/nanotrack-int8" >/dev/null
+        --budget 4 --min-macs 1000000 --min-out-channels 16 --depthwise --out "$work/nanotrack-int8" >/dev/null
     # Every plan is recorded with the runtime's own operators. The int8 plan's integer layers
-    # run as PackedQConv on both sides (on aarch64 in the channels-last layouts tract gives
-    # NanoTrack's layers there), exact sums requantised alike, so they give the same bytes
-    # where the f32 layers between them do. `PRL_OPS=tract-int8` records with tract's integer
+    # run as PackedQConv and DepthwiseQConv (`--depthwise`) on both sides (on aarch64 on SDOT,
+    # the pointwise ones in the channels-last layouts tract gives NanoTrack's layers there),
+    # exact sums requantised alike, so they give the same bytes where the f32 layers between
+    # them do. `PRL_OPS=tract-int8` records with tract's integer
     # products instead (they requantise as PackedQConv does).
     for p in prl-plan nanotrack-plan nanotrack-int8; do
         "$host" bench --plan "$work/$p" --runs 1 --top 0 --sequence "$golden/seq_drift" \

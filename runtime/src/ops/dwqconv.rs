@@ -10,7 +10,9 @@
 //! `vpdpbusd` multiplies them by that kernel row's four i8 weights (zero past the kernel's
 //! width) into sixteen i32 sums; the padding holds the input zero point and `x0·Σw` comes off
 //! with the bias, so the sums are exactly `Σ (x − x0)·w`. They are requantised in registers as
-//! [`super::PackedQConv`] requantises (tract's rounding). Elsewhere the same exact sums come
+//! [`super::PackedQConv`] requantises (tract's rounding). On aarch64 with the dot product
+//! (`dwqconv_sdot.rs`) `TBL` makes the words and `SDOT` sums them (the bytes flipped to `x − 128`
+//! as i8: no mixed-sign dot product on the Orin's A78AE). Elsewhere the same exact sums come
 //! from the float depthwise kernel of every other CPU ([`DepthwiseConv`] on `x − x0` and the
 //! integer weights: every product and partial sum is an integer under 2^24, so exact in f32),
 //! requantised by the same code: the same bytes on every path. Around it, in NanoTrack's
@@ -30,19 +32,58 @@ use super::conv::ConvShape;
 use super::dwconv::DepthwiseConv;
 #[cfg(target_arch = "x86_64")]
 use super::dwqconv_kernel;
+#[cfg(target_arch = "aarch64")]
+use super::dwqconv_sdot;
 use super::qconv::{konst_values, requant_scales, sum_bound, weight_scales};
 use super::qconv_kernel::{exact_fits, requantise};
 use super::quant::DequantizeU8;
 use super::{all_ones, output_tensor_written, pads_2d};
-#[cfg(target_arch = "x86_64")]
-use super::{par_chunks, serial_if_small, SERIAL_MACS};
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+use super::{par_chunks, serial_if_small, with_bytes, SERIAL_MACS};
 
-/// Output columns a register holds (16 i32 lanes).
-#[cfg(target_arch = "x86_64")]
+/// Output columns a step of the integer kernels makes (16 i32 lanes on AVX-512, four registers
+/// of four on NEON).
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
 pub(super) const LANES: usize = 16;
-/// Bytes past a padded plane's end that a 64-byte load from its last column may reach.
-#[cfg(target_arch = "x86_64")]
+/// Bytes past a padded plane's end that a load from its last column may reach (64 on AVX-512,
+/// 48 on NEON).
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
 pub(super) const SLACK: usize = 64;
+
+/// How a [`DepthwiseQConv`] computes its sums.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Path {
+    /// The float depthwise kernel on `x − x0` (exact integer sums): every CPU.
+    Float,
+    /// `vpermb` + `vpdpbusd`: AVX-512 VNNI with VBMI.
+    Vnni,
+    /// `TBL` + `SDOT`: aarch64 with the dot product.
+    Sdot,
+}
+
+impl Path {
+    /// The paths this CPU runs ([`crate::isa`]): the float one, and the integer kernel where
+    /// there is one (the tests run each).
+    #[cfg(test)]
+    fn here() -> Vec<Path> {
+        match Path::best() {
+            Path::Float => vec![Path::Float],
+            best => vec![Path::Float, best],
+        }
+    }
+
+    /// The fastest path here.
+    fn best() -> Path {
+        let isa = crate::isa();
+        if cfg!(target_arch = "x86_64") && isa.vnni && isa.vbmi {
+            Path::Vnni
+        } else if cfg!(target_arch = "aarch64") && isa.dotprod {
+            Path::Sdot
+        } else {
+            Path::Float
+        }
+    }
+}
 
 /// `y[n,c,oy,ox] = sat_u8(round((Σ_{i,j} (pad(x)[n,c,s·oy+i,s·ox+j] − x0)·w[c,i,j] + bias[c]) ·
 /// scale[c]) + y0)`, `pad` with the zero point `x0`, stride `s` 1 or 2: a depthwise
@@ -58,6 +99,8 @@ pub struct DepthwiseQConv {
     words: Arc<Vec<i32>>,
     /// Per channel `bias − x0·Σw`: what the VNNI path's sums of raw bytes need added.
     offset: Arc<Vec<i32>>,
+    /// Per channel `Σw`: the SDOT path's sums of `x − 128` need `128·Σw` more.
+    wsum: Arc<Vec<i32>>,
     /// Per channel: what the portable path's sums of `x − x0` need added.
     bias: Arc<Vec<i32>>,
     /// Per channel `x_scale · w_scale / y_scale`.
@@ -90,6 +133,7 @@ impl PartialEq for DepthwiseQConv {
             && self.batch == other.batch
             && self.words == other.words
             && self.offset == other.offset
+            && self.wsum == other.wsum
             && self.bias == other.bias
             && super::same_bits(&self.scale, &other.scale)
             && (self.exact, self.x0, self.y0, self.out_dt) == (other.exact, other.x0, other.y0, other.out_dt)
@@ -122,6 +166,7 @@ impl DepthwiseQConv {
         let groups = kw.div_ceil(4);
         let mut words = vec![0i32; c * kh * groups];
         let mut offset = vec![0i32; c];
+        let mut wsum = vec![0i32; c];
         for ch in 0..c {
             let taps = &kernel[ch * kh * kw..(ch + 1) * kh * kw];
             for i in 0..kh {
@@ -135,6 +180,7 @@ impl DepthwiseQConv {
             }
             let sum: i32 = taps.iter().map(|&w| w as i32).sum();
             offset[ch] = bias[ch] - x0 as i32 * sum;
+            wsum[ch] = sum;
         }
         let exact = scale.iter().all(|v| v.to_bits() == scale[0].to_bits());
         let weights: Vec<f32> = kernel.iter().map(|&w| w as f32).collect();
@@ -145,6 +191,7 @@ impl DepthwiseQConv {
             batch,
             words: Arc::new(words),
             offset: Arc::new(offset),
+            wsum: Arc::new(wsum),
             bias: Arc::new(bias.to_vec()),
             scale: Arc::new(scale.to_vec()),
             exact,
@@ -174,41 +221,61 @@ impl DepthwiseQConv {
         DepthwiseQConv { table: Some(Arc::new(table)), ..self }
     }
 
-    /// Whether the VNNI path runs here ([`crate::isa`]).
-    fn vnni() -> bool {
-        let isa = crate::isa();
-        isa.vnni && isa.vbmi
-    }
-
-    /// The padded plane's rows and row length (no phases: the byte permute takes every second
-    /// byte for stride 2), with [`SLACK`] bytes after it.
-    #[cfg(target_arch = "x86_64")]
+    /// The padded plane's rows and row length (no phases: the byte permutes and lookups take
+    /// every second byte for stride 2), with [`SLACK`] bytes after it.
+    #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
     fn padded_len(&self) -> usize {
         let (hp, wp) = self.shape.padded();
         hp * wp + SLACK
     }
 
-    /// Channel `ch` of one image on VNNI: `src` (`[h, w]` bytes) into `dst` (`[oh, ow]`), with
-    /// `pad` ([`Self::padded_len`] bytes whose borders hold `x0`).
-    #[cfg(target_arch = "x86_64")]
-    fn channel_vnni(&self, ch: usize, src: &[u8], pad: &mut [u8], dst: &mut [u8]) {
+    /// Channel `ch` of one image on `path` (VNNI or SDOT): `src` (`[h, w]` bytes) into `dst`
+    /// (`[oh, ow]`), with `pad` ([`Self::padded_len`] bytes whose borders hold the path's
+    /// padding, [`Self::padding`]).
+    #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+    fn channel(&self, path: Path, ch: usize, src: &[u8], pad: &mut [u8], dst: &mut [u8]) {
         let s = &self.shape;
         let per = s.kh * s.kw.div_ceil(4);
         let words = &self.words[ch * per..(ch + 1) * per];
-        let q = (self.offset[ch], self.scale[ch], self.exact, self.y0);
         let (oh, ow) = s.out();
         assert!(
             src.len() == s.h * s.w && pad.len() >= self.padded_len() && dst.len() == oh * ow,
             "planes of the shape"
         );
-        // SAFETY: the CPU has AVX-512F, BW, VL, VNNI and VBMI ([`Self::vnni`]); `src`, `pad`
-        // (the padded plane and its slack) and `dst` are the planes of the shape (asserted).
-        unsafe {
-            match &self.table {
-                None => dwqconv_kernel::copy_rows::<false>(s, src, pad, &[0; 256]),
-                Some(t) => dwqconv_kernel::copy_rows::<true>(s, src, pad, t),
+        assert!(path == Path::best(), "{path:?} runs here");
+        match path {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: the CPU has AVX-512F, BW, VL, VNNI and VBMI ([`Path::best`], asserted);
+            // `src`, `pad` (the padded plane and its slack) and `dst` are the planes of the
+            // shape (asserted).
+            Path::Vnni => unsafe {
+                match &self.table {
+                    None => dwqconv_kernel::copy_rows::<false>(s, src, pad, &[0; 256]),
+                    Some(t) => dwqconv_kernel::copy_rows::<true>(s, src, pad, t),
+                }
+                let q = (self.offset[ch], self.scale[ch], self.exact, self.y0);
+                dwqconv_kernel::plane(s, pad, words, q, dst)
+            },
+            #[cfg(target_arch = "aarch64")]
+            Path::Sdot => {
+                dwqconv_sdot::copy_rows(s, src, pad, self.table.as_deref());
+                let q = (self.offset[ch] + 128 * self.wsum[ch], self.scale[ch], self.exact, self.y0);
+                // SAFETY: the CPU has the dot product ([`Path::best`], asserted); `pad` (the
+                // padded plane and its slack) and `dst` are the planes of the shape (asserted).
+                unsafe { dwqconv_sdot::plane(s, pad, words, q, dst) }
             }
-            dwqconv_kernel::plane(s, pad, words, q, dst)
+            _ => unreachable!("{path:?} is not an integer kernel of this architecture"),
+        }
+    }
+
+    /// The byte a path's padded plane holds outside the input: `x0`, flipped to `x0 − 128` on
+    /// SDOT (its planes hold `x − 128` as i8).
+    #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+    fn padding(&self, path: Path) -> u8 {
+        if path == Path::Sdot {
+            self.x0 ^ 0x80
+        } else {
+            self.x0
         }
     }
 }
@@ -220,7 +287,11 @@ impl Op for DepthwiseQConv {
 
     fn info(&self) -> TractResult<Vec<String>> {
         let s = &self.shape;
-        let path = if Self::vnni() { "AVX-512 VNNI" } else { "the float kernel's exact sums" };
+        let path = match Path::best() {
+            Path::Vnni => "AVX-512 VNNI",
+            Path::Sdot => "aarch64 SDOT",
+            Path::Float => "the float kernel's exact sums",
+        };
         let scale = if self.exact { "one scale, exact product" } else { "per-channel scales" };
         let table = if self.table.is_some() { ", input through a byte table" } else { "" };
         let out = if self.dequant.is_some() { ", output dequantised" } else { "" };
@@ -238,13 +309,13 @@ impl EvalOp for DepthwiseQConv {
 
     fn eval(&self, ctx: &EvalContext, inputs: TVec<TValue>) -> TractResult<TVec<TValue>> {
         let input = args_1!(inputs);
-        Ok(tvec!(self.run(ctx, input, Self::vnni())?.into_tvalue()))
+        Ok(tvec!(self.run(ctx, input, Path::best())?.into_tvalue()))
     }
 }
 
 impl DepthwiseQConv {
-    /// The output for `input`, on VNNI (`vnni`) or through the float kernel.
-    fn run(&self, ctx: &EvalContext, input: TValue, vnni: bool) -> TractResult<Tensor> {
+    /// The output for `input` on `path`.
+    fn run(&self, ctx: &EvalContext, input: TValue, path: Path) -> TractResult<Tensor> {
         let s = &self.shape;
         let (n, c, h, w) = match (self.batch, input.shape()) {
             (true, &[n, c, h, w]) => (n, c, h, w),
@@ -256,8 +327,8 @@ impl DepthwiseQConv {
         let (oh, ow) = s.out();
         let shape: TVec<usize> = if self.batch { tvec![n, c, oh, ow] } else { tvec![c, oh, ow] };
         let plane = oh * ow;
-        if vnni {
-            return self.run_vnni(&input, &shape);
+        if path != Path::Float {
+            return self.run_words(&input, &shape, path);
         }
         // The float kernel's sums (exact integers), requantised plane by plane.
         let input = match &self.table {
@@ -302,11 +373,11 @@ impl DepthwiseQConv {
         Ok(out)
     }
 
-    /// [`EvalOp::eval`] on VNNI: channels in groups of about `SERIAL_MACS / 8` multiply-adds
-    /// over tract's threads, each group with one padded plane (its borders `x0`).
-    #[cfg(target_arch = "x86_64")]
-    fn run_vnni(&self, input: &Tensor, shape: &[usize]) -> TractResult<Tensor> {
-        use super::with_bytes;
+    /// [`EvalOp::eval`] on an integer kernel (`path`, VNNI or SDOT): channels in groups of
+    /// about `SERIAL_MACS / 8` multiply-adds over tract's threads, each group with one padded
+    /// plane (its borders [`Self::padding`]).
+    #[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+    fn run_words(&self, input: &Tensor, shape: &[usize], path: Path) -> TractResult<Tensor> {
         let s = &self.shape;
         let c = s.ci;
         let input = input.try_as_plain_ram()?;
@@ -325,10 +396,10 @@ impl DepthwiseQConv {
                     par_chunks(out, group * plane, |g, dst| {
                         with_bytes(self.padded_len(), |pad| {
                             // The borders read x0; the rows are copied in for each channel.
-                            pad.fill(self.x0);
+                            pad.fill(self.padding(path));
                             for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
                                 let p = g * group + k;
-                                self.channel_vnni(p % c, src(p), pad, d);
+                                self.channel(path, p % c, src(p), pad, d);
                             }
                         })
                     });
@@ -343,10 +414,10 @@ impl DepthwiseQConv {
                     par_chunks(out, group * plane, |g, dst| {
                         with_bytes(self.padded_len() + plane, |buf| {
                             let (pad, bytes) = buf.split_at_mut(self.padded_len());
-                            pad.fill(self.x0);
+                            pad.fill(self.padding(path));
                             for (k, d) in dst.chunks_exact_mut(plane).enumerate() {
                                 let p = g * group + k;
-                                self.channel_vnni(p % c, src(p), pad, bytes);
+                                self.channel(path, p % c, src(p), pad, bytes);
                                 dq.apply(bytes, d);
                             }
                         })
@@ -357,10 +428,10 @@ impl DepthwiseQConv {
         })
     }
 
-    /// No VNNI off x86_64 ([`Self::vnni`] is false there).
-    #[cfg(not(target_arch = "x86_64"))]
-    fn run_vnni(&self, _: &Tensor, _: &[usize]) -> TractResult<Tensor> {
-        bail!("DepthwiseQConv: VNNI is x86_64's")
+    /// No integer kernel elsewhere ([`Path::best`] is the float one).
+    #[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
+    fn run_words(&self, _: &Tensor, _: &[usize], path: Path) -> TractResult<Tensor> {
+        bail!("DepthwiseQConv: no {path:?} kernel on this architecture")
     }
 }
 
@@ -563,8 +634,8 @@ mod tests {
             // Over SERIAL_MACS: channels in groups (on the pool, when there is one).
             (shape(24, 64, 64, 5, 1), true, false),
         ];
-        if !DepthwiseQConv::vnni() {
-            eprintln!("NOTE: no AVX-512 VNNI with VBMI here (or PRL_ISA caps it): DepthwiseQConv's VNNI path is NOT tested here, only the float kernel's exact sums");
+        if Path::here() == [Path::Float] {
+            eprintln!("NOTE: no AVX-512 VNNI with VBMI or aarch64 dot product here (or PRL_ISA caps it): DepthwiseQConv's integer kernels are NOT tested here, only the float kernel's exact sums");
         }
         for (s, batch, one_scale) in cases {
             let model = tract_model(&s, batch, one_scale, None);
@@ -579,12 +650,11 @@ mod tests {
             let node = model.node(model.output_outlets().unwrap()[0].node);
             let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
             assert_eq!(op.exact, one_scale);
-            let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
-            for vnni in paths {
-                let got = op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap();
+            for path in Path::here() {
+                let got = op.run(&EvalContext::out_of_plan(), input.clone(), path).unwrap();
                 assert_eq!(got.shape(), model.output_fact(0).unwrap().shape.as_concrete().unwrap());
                 let got = bytes_of(&got);
-                assert!(got == want, "{s:?}, vnni {vnni}: other bytes");
+                assert!(got == want, "{s:?}, {path:?}: other bytes");
             }
             // And put in by `accelerate`, as a plan gets it.
             let mut fast = model.clone();
@@ -611,11 +681,10 @@ mod tests {
             let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
             let (op, x) = past_table(&model, node.inputs[0], op);
             assert!(op.table.is_some() && x.node == 0, "the table read, the source its input");
-            let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
-            for vnni in paths {
-                let got = op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap();
+            for path in Path::here() {
+                let got = op.run(&EvalContext::out_of_plan(), input.clone(), path).unwrap();
                 let got = bytes_of(&got);
-                assert!(got == want, "{s:?}, vnni {vnni}: other bytes");
+                assert!(got == want, "{s:?}, {path:?}: other bytes");
             }
             let mut fast = model.clone();
             crate::ops::accelerate(&mut fast).unwrap();
@@ -651,12 +720,11 @@ mod tests {
             let (dq, chain) = dequantized_after(&model, conv).unwrap().expect("the dequantiser after it");
             assert_eq!(chain.len(), 2, "the dequantiser and the hard-swish");
             let op = op.dequantizing(dq);
-            let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
-            for vnni in paths {
-                let got = op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap();
+            for path in Path::here() {
+                let got = op.run(&EvalContext::out_of_plan(), input.clone(), path).unwrap();
                 let got: Vec<u32> =
                     got.try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().iter().map(|v| v.to_bits()).collect();
-                assert!(got == want, "{s:?}, vnni {vnni}: other values");
+                assert!(got == want, "{s:?}, {path:?}: other values");
             }
             let mut fast = model.clone();
             crate::ops::accelerate(&mut fast).unwrap();
@@ -681,7 +749,6 @@ mod tests {
         let reciprocal = |k: f32| (k * x_scale) * (1.0 / y_scale);
         let (division, reciprocal): (&dyn Fn(f32) -> f32, &dyn Fn(f32) -> f32) = (&division, &reciprocal);
         let parting = |exact| super::super::qconv_kernel::parting_scales(x_scale, y_scale, exact);
-        let paths = if DepthwiseQConv::vnni() { vec![false, true] } else { vec![false] };
         for (c, many) in [(12, false), (20, true)] {
             let s = ConvShape { ci: c, h: 16, w: 21, co: c, kh: 3, kw: 3, pad: [1; 4], stride: 1 };
             for equal in [false, true] {
@@ -709,9 +776,9 @@ mod tests {
                 let node = model.node(model.output_outlets().unwrap()[0].node);
                 let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
                 assert_eq!(op.exact, equal);
-                for &vnni in &paths {
-                    let got = bytes_of(&op.run(&EvalContext::out_of_plan(), input.clone(), vnni).unwrap());
-                    assert!(got == want, "{c} channels, equal {equal}, vnni {vnni}: other bytes");
+                for path in Path::here() {
+                    let got = bytes_of(&op.run(&EvalContext::out_of_plan(), input.clone(), path).unwrap());
+                    assert!(got == want, "{c} channels, equal {equal}, {path:?}: other bytes");
                 }
             }
         }

@@ -23,6 +23,8 @@ mod dwconv_hwc;
 mod dwqconv;
 #[cfg(target_arch = "x86_64")]
 mod dwqconv_kernel;
+#[cfg(target_arch = "aarch64")]
+mod dwqconv_sdot;
 mod matmul;
 mod norm;
 mod permute;
@@ -418,8 +420,8 @@ fn with_words<T: Word, R>(len: usize, f: impl FnOnce(&mut [T]) -> R) -> R {
 /// Run `f` on the calling thread's buffer of `len` bytes, kept from call to call (it grows to
 /// the largest `len` asked for): the bytes are whatever its last use left, so `f` writes before
 /// it reads. The integer depthwise layers' padded planes (allocated per channel group and
-/// frame before; x86's alone for now).
-#[cfg(target_arch = "x86_64")]
+/// frame before).
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
 fn with_bytes<R>(len: usize, f: impl FnOnce(&mut [u8]) -> R) -> R {
     thread_local! {
         static BYTES: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
@@ -521,6 +523,7 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
         "PackedQConv" if info.contains("VNNI") => "vnni".to_string(),
         "PackedQConv" => isa.int8_kernel().unwrap_or("-").to_string(),
         "DepthwiseQConv" if info.contains("VNNI") => "vnni".to_string(),
+        "DepthwiseQConv" if info.contains("SDOT") => "sdot".to_string(),
         "DepthwiseQConv" => format!("{} (exact sums)", crate::isa::f32_kernel().name()),
         // 3 x 3 windows of stride 2 in AVX-512 for f32 (u8 as below).
         "ChannelMaxPool"
