@@ -103,7 +103,8 @@ pub struct DepthwiseQConv {
     wsum: Arc<Vec<i32>>,
     /// Per channel: what the portable path's sums of `x − x0` need added.
     bias: Arc<Vec<i32>>,
-    /// Per channel `x_scale · w_scale / y_scale`.
+    /// Per channel `x_scale · w_scale / y_scale`, as tract computes it
+    /// ([`super::qconv::requant_scales`]).
     scale: Arc<Vec<f32>>,
     /// One scale for every channel: tract's exact fixed-point product
     /// ([`super::qconv_kernel::requant_one`]).

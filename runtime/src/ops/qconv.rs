@@ -634,7 +634,6 @@ fn has_words_path() -> bool {
     words_path().is_some()
 }
 
-/// A scalar (or a vector of `n`) constant as f32 / i32 values.
 /// A quantised layer's weight scales as its graph holds them: one (per-tensor weights) or one
 /// per output channel (`co`); `None` if not constant or of another length.
 pub(super) fn weight_scales(fact: &TypedFact, co: usize) -> TractResult<Option<Vec<f32>>> {
@@ -661,6 +660,7 @@ pub(super) fn requant_scales(x_scale: f32, k_scale: &[f32], y_scale: f32, co: us
 /// has fewer values than this.
 const EAGER_FOLD_VOLUME: usize = 16;
 
+/// A scalar (or a vector of `n`) constant as f32 / i32 values.
 pub(super) fn konst_values<T: Datum + Copy>(fact: &TypedFact, n: usize) -> TractResult<Option<Vec<T>>> {
     let Some(k) = &fact.konst else { return Ok(None) };
     let k = k.cast_to::<T>()?;

@@ -46,8 +46,8 @@ pub(super) fn tie_sums(scale: f32) -> Vec<i32> {
 
 /// Weight scales `k` whose requantisation scales by tract's two forms (`x · k / y` and `(k · x)
 /// · (1 / y)`, see [`super::qconv::requant_scales`]) part, each with a sum whose products
-/// with the two round apart (rounded exactly, as tract's `Scaler`, with `exact`), outputs
-/// (zero point 100) within 10 of the ends: the test cases that tell the forms apart.
+/// with the two round apart (rounded exactly, as tract's `Scaler`, with `exact`) and outputs
+/// within 90 of the zero point 100 (unsaturated): the test cases that tell the forms apart.
 #[cfg(test)]
 pub(super) fn parting_scales(x_scale: f32, y_scale: f32, exact: bool) -> impl Iterator<Item = (f32, i32)> {
     (0..20000).filter_map(move |i| {
