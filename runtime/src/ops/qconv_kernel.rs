@@ -53,6 +53,9 @@ pub(super) fn parting_scales(x_scale: f32, y_scale: f32, exact: bool) -> impl It
     (0..20000).filter_map(move |i| {
         let k = 0.0005 + 0.0000013 * i as f32;
         let (d, r) = (x_scale * k / y_scale, (k * x_scale) * (1.0 / y_scale));
+        if d.to_bits() == r.to_bits() {
+            return None;
+        }
         let limit = (90.0 / r) as i32;
         let b = (-limit..limit).find(|&b| requant_one(b, d, exact, 100) != requant_one(b, r, exact, 100))?;
         Some((k, b))
