@@ -577,7 +577,6 @@ pub(crate) fn depthwise_q(model: &TypedModel, node: &TypedNode) -> TractResult<O
 
 #[cfg(test)]
 mod tests {
-    use super::super::qconv_kernel::requant_one;
     use super::*;
 
     /// tract's quantised depthwise `Conv` of `s` on `batch` (NCHW) or CHW data, with input zero
@@ -591,13 +590,7 @@ mod tests {
         let w_scale: Vec<f32> = (0..c).map(|o| if one_scale { 0.4 } else { 0.2 + 0.05 * o as f32 }).collect();
         let w_scale: Vec<f32> = w_scale.iter().map(|v| v / (taps.sqrt() * 127.0)).collect();
         let w_scale = if one_scale { tensor0(w_scale[0]) } else { tensor1(&w_scale) };
-        tract_model_with(s, batch, (&bias, w_scale, 0.01), table)
-    }
-
-    /// [`tract_model`] with the given biases, weight scales (one or one per channel) and output
-    /// scale.
-    fn tract_model_with(s: &ConvShape, batch: bool, params: (&[i32], Tensor, f32), table: Option<&[u8]>) -> TypedModel {
-        super::super::qconv::tract_q_conv(s, s.ci, batch, params, table)
+        super::super::qconv::tract_q_conv(s, c, batch, (&bias, w_scale, 0.01), table)
     }
 
     /// The tests' u8 input for `s`: NCHW (`batch`) or CHW bytes spread over 0..=255.
@@ -737,43 +730,16 @@ mod tests {
         }
     }
 
-    /// Per-channel scales as tract's plan has them: with fewer than 16 channels `x · k / y`,
-    /// with 16 and more `(k · x) · (1 / y)` ([`requant_scales`]). Each channel's weight scale
-    /// is one where the two forms part by a unit in the last place, and its bias a sum whose
-    /// products with the two round apart; the input is the zero point over its first half
-    /// (outputs there: the biases requantised), spread bytes below. Weight scales one per
-    /// channel, and one per channel all equal (tract's exact product).
+    /// Per-channel scales as tract's plan has them ([`requant_scales`]: `x · k / y` with 12
+    /// channels, `(k · x) · (1 / y)` with 20), on layers where the two forms give other bytes
+    /// ([`super::super::qconv::parting_case`]; weight scales one per channel, and all equal:
+    /// tract's exact product): every path gives tract's bytes.
     #[test]
     fn per_channel_scales_are_tract_s_to_the_last_bit() {
-        let (x_scale, y_scale) = (0.02f32, 0.0137f32);
-        let division = |k: f32| x_scale * k / y_scale;
-        let reciprocal = |k: f32| (k * x_scale) * (1.0 / y_scale);
-        let (division, reciprocal): (&dyn Fn(f32) -> f32, &dyn Fn(f32) -> f32) = (&division, &reciprocal);
-        let parting = |exact| super::super::qconv_kernel::parting_scales(x_scale, y_scale, exact);
-        for (c, many) in [(12, false), (20, true)] {
+        for c in [12, 20] {
             let s = ConvShape { ci: c, h: 16, w: 21, co: c, kh: 3, kw: 3, pad: [1; 4], stride: 1 };
             for equal in [false, true] {
-                let (k_scale, bias): (Vec<f32>, Vec<i32>) = match equal {
-                    false => parting(false).take(c).unzip(),
-                    true => parting(true).take(1).flat_map(|p| std::iter::repeat_n(p, c)).unzip(),
-                };
-                assert_eq!(k_scale.len(), c, "enough scales where the forms part");
-                let model = tract_model_with(&s, false, (&bias, tensor1(&k_scale), y_scale), None);
-                let mut bytes: Vec<u8> = (0..c * s.h * s.w).map(|i| ((i * 7919) % 256) as u8).collect();
-                for plane in bytes.chunks_exact_mut(s.h * s.w) {
-                    plane[..s.h / 2 * s.w].fill(117);
-                }
-                let input = Tensor::from_shape(&[c, s.h, s.w], &bytes).unwrap().into_tvalue();
-                let want = bytes_of(&tract_run(&model, &input)[0]);
-                // The case tells the forms apart: at the zero point tract's bytes are the
-                // expected form's, not the other's.
-                let at_zero: Vec<u8> = want.chunks_exact(s.h * s.w).map(|p| p[s.w + 1]).collect();
-                let rounded = |f: &dyn Fn(f32) -> f32| -> Vec<u8> {
-                    k_scale.iter().zip(&bias).map(|(&k, &b)| requant_one(b, f(k), equal, 100)).collect()
-                };
-                let (expected, other) = if many { (reciprocal, division) } else { (division, reciprocal) };
-                assert_eq!(at_zero, rounded(expected), "{c} channels, equal {equal}: tract's bytes");
-                assert_ne!(at_zero, rounded(other), "{c} channels, equal {equal}: the forms part");
+                let (model, input, want) = super::super::qconv::parting_case(&s, c, false, equal);
                 let node = model.node(model.output_outlets().unwrap()[0].node);
                 let op = depthwise_q(&model, node).unwrap().expect("a DepthwiseQConv");
                 assert_eq!(op.exact, equal);

@@ -1054,6 +1054,47 @@ pub(super) fn tract_q_conv(
     model
 }
 
+/// A case that tells tract's two forms of per-channel requantisation scales apart (see
+/// [`requant_scales`]): [`tract_q_conv`] of `s` in `group`s with weight scales where `x · k / y`
+/// and `(k · x) · (1 / y)` part by a unit in the last place, one per output channel (`equal`:
+/// all the same, tract's exact product) and biases whose products with the two round apart;
+/// its input the zero point over the first half of every plane (outputs there: the biases
+/// requantised), spread bytes below. Checks that tract's optimised plan takes the form its
+/// channel count calls for, not the other, and returns the model, the input and tract's bytes.
+#[cfg(test)]
+pub(super) fn parting_case(s: &ConvShape, group: usize, batch: bool, equal: bool) -> (TypedModel, TValue, Vec<u8>) {
+    use super::qconv_kernel::{parting_scales, requant_one};
+    // [`tract_q_conv`]'s input scale and zero points.
+    let (x_scale, y_scale, x0, y0) = (0.02f32, 0.0137f32, 117u8, 100u8);
+    let co = s.co;
+    let (k_scale, bias): (Vec<f32>, Vec<i32>) = match equal {
+        false => parting_scales(x_scale, y_scale, false).take(co).unzip(),
+        true => parting_scales(x_scale, y_scale, true).take(1).flat_map(|p| std::iter::repeat_n(p, co)).unzip(),
+    };
+    assert_eq!(k_scale.len(), co, "enough scales where the forms part");
+    let model = tract_q_conv(s, group, batch, (&bias, tensor1(&k_scale), y_scale), None);
+    let mut bytes: Vec<u8> = (0..s.ci * s.h * s.w).map(|i| ((i * 7919) % 256) as u8).collect();
+    for plane in bytes.chunks_exact_mut(s.h * s.w) {
+        plane[..s.h / 2 * s.w].fill(x0);
+    }
+    let shape: Vec<usize> = if batch { vec![1, s.ci, s.h, s.w] } else { vec![s.ci, s.h, s.w] };
+    let input = Tensor::from_shape(&shape, &bytes).unwrap().into_tvalue();
+    let out = model.clone().into_optimized().unwrap().into_runnable().unwrap().run(tvec![input.clone()]).unwrap();
+    // SAFETY: the output is u8 (possibly quantised).
+    let want = unsafe { out[0].try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+    // Row 1, column 1 of each output plane: its window reads the zero point alone.
+    let at_zero: Vec<u8> = want.chunks_exact(s.out().0 * s.out().1).map(|p| p[s.out().1 + 1]).collect();
+    let by = |f: &dyn Fn(f32) -> f32| -> Vec<u8> {
+        k_scale.iter().zip(&bias).map(|(&k, &b)| requant_one(b, f(k), equal, y0)).collect()
+    };
+    let division = by(&|k| x_scale * k / y_scale);
+    let reciprocal = by(&|k| (k * x_scale) * (1.0 / y_scale));
+    let (expected, other) = if co < 16 { (division, reciprocal) } else { (reciprocal, division) };
+    assert_eq!(at_zero, expected, "{co} channels, equal {equal}: tract's bytes");
+    assert_ne!(at_zero, other, "{co} channels, equal {equal}: the forms part");
+    (model, input, want)
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::qconv_kernel::requant_one;
@@ -1240,57 +1281,26 @@ mod tests {
         check(ConvShape { ci: 96, h: 9, w: 12, co: 96, kh: 5, kw: 5, pad: [2, 2, 2, 2], stride: 1 });
     }
 
-    /// Per-channel scales as tract's plan has them ([`requant_scales`]): with 12 output
-    /// channels `x · k / y`, with 20 `(k · x) · (1 / y)`. Each channel's weight scale is one
-    /// where the two forms part by a unit in the last place, and its bias a sum whose products
-    /// with the two round apart; the input is the zero point over its first half (outputs
-    /// there: the biases requantised). Weight scales one per channel, and one per channel all
-    /// equal (tract's exact product). Against tract's optimised plan, through `accelerate`.
+    /// Per-channel scales as tract's plan has them ([`requant_scales`]: `x · k / y` with 12
+    /// output channels, `(k · x) · (1 / y)` with 20), on layers where the two forms give other
+    /// bytes ([`parting_case`]; weight scales one per channel, and all equal: tract's exact
+    /// product): the `PackedQConv` that `accelerate` makes gives tract's bytes.
     #[test]
     fn per_channel_scales_are_tract_s_to_the_last_bit() {
-        use super::super::qconv_kernel::parting_scales;
         if !has_words_path() {
             eprintln!("NOTE: no AVX-512 VNNI, AVX2 or aarch64 dot product here (or PRL_ISA caps it): PackedQConv's per-channel scales are NOT tested on this machine");
             return;
         }
-        let (x_scale, y_scale) = (0.02f32, 0.0137f32);
-        let division = |k: &f32| x_scale * k / y_scale;
-        let reciprocal = |k: &f32| (k * x_scale) * (1.0 / y_scale);
         for co in [12, 20] {
             let s = ConvShape { ci: 8, h: 10, w: 13, co, kh: 3, kw: 3, pad: [1; 4], stride: 1 };
             for exact in [false, true] {
-                let (k_scale, bias): (Vec<f32>, Vec<i32>) = match exact {
-                    false => parting_scales(x_scale, y_scale, false).take(co).unzip(),
-                    true => {
-                        parting_scales(x_scale, y_scale, true).take(1).flat_map(|p| std::iter::repeat_n(p, co)).unzip()
-                    }
-                };
-                assert_eq!(k_scale.len(), co, "enough scales where the forms part");
-                let model = tract_q_conv(&s, 1, true, (&bias, tensor1(&k_scale), y_scale), None);
-                let mut bytes: Vec<u8> = (0..s.ci * s.h * s.w).map(|i| ((i * 7919) % 256) as u8).collect();
-                for plane in bytes.chunks_exact_mut(s.h * s.w) {
-                    plane[..s.h / 2 * s.w].fill(117);
-                }
-                let input = Tensor::from_shape(&[1, s.ci, s.h, s.w], &bytes).unwrap().into_tvalue();
-                let run = |m: TypedModel| -> Vec<u8> {
-                    let out = m.into_runnable().unwrap().run(tvec![input.clone()]).unwrap().remove(0);
-                    // SAFETY: the output is u8 (possibly quantised).
-                    unsafe { out.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() }
-                };
-                let want = run(model.clone().into_optimized().unwrap());
-                // At the zero point tract's bytes are the biases requantised by the expected
-                // form's scales, not by the other's.
-                let at_zero: Vec<u8> = want.chunks_exact(s.h * s.w).map(|p| p[s.w + 1]).collect();
-                let by = |f: &dyn Fn(&f32) -> f32| -> Vec<u8> {
-                    k_scale.iter().zip(&bias).map(|(k, &b)| requant_one(b, f(k), exact, 100)).collect()
-                };
-                let (expected, other) =
-                    if co < 16 { (by(&division), by(&reciprocal)) } else { (by(&reciprocal), by(&division)) };
-                assert_eq!(at_zero, expected, "{co} channels, exact {exact}: tract's bytes");
-                assert_ne!(at_zero, other, "{co} channels, exact {exact}: the forms part");
-                let mut fast = model.clone();
+                let (model, input, want) = parting_case(&s, 1, true, exact);
+                let mut fast = model;
                 assert_eq!(crate::ops::accelerate(&mut fast).unwrap().int8_convolutions, 1, "{s:?}");
-                assert!(run(fast) == want, "{co} channels, exact {exact}: other bytes");
+                let out = fast.into_runnable().unwrap().run(tvec![input]).unwrap().remove(0);
+                // SAFETY: the output is u8 (possibly quantised).
+                let got = unsafe { out.try_as_plain_ram().unwrap().as_slice_unchecked::<u8>().to_vec() };
+                assert!(got == want, "{co} channels, exact {exact}: other bytes");
             }
         }
     }
