@@ -491,6 +491,17 @@ fn int8_plan_runs_integer_kernels_near_fp32_on_held_out_footage() {
     let qi = plan.manifest().quantization.as_ref().unwrap();
     let n8 = qi.layers.iter().filter(|l| l.decision == prl_runtime::LayerDecision::Int8).count();
     assert!(n8 >= 15, "{n8} int8 layers");
+    // A HardSwish alone reads the stem's output and the expanding layers' of blocks 4-8: their u8
+    // ranges start at -3 (the stem reaches about -95), the lowest code standing for -3 or less.
+    let stem = qi.layers.iter().find(|l| l.node.ends_with("features.0.0/Conv")).unwrap();
+    assert_eq!(stem.output_range.0, -3.0, "{stem:?}");
+    let floored: Vec<f32> = qi
+        .layers
+        .iter()
+        .filter(|l| l.decision == prl_runtime::LayerDecision::Int8 && l.output_range.0 == -3.0)
+        .filter_map(|l| qi.ranges.iter().find(|(v, _)| v.starts_with(l.node.as_str())).map(|(_, r)| r.0))
+        .collect();
+    assert!(floored.len() >= 3 && floored.iter().all(|&lo| lo <= -3.0 && lo > -3.5), "{floored:?}");
     let kernels = common::int8_kernel_nodes(&plan);
     assert!(kernels.len() >= 10, "{kernels:?}");
     assert!(kernels.iter().any(|k| k.starts_with("head_")), "the head's pointwise convs: {kernels:?}");

@@ -154,7 +154,7 @@ fn every_method_works_keep_fp32_keeps_layers_in_f32_and_act_matmul_adds_attentio
     let fp32 = common::reference_plan();
     let t = tempfile::tempdir().unwrap();
     let calib = shared("wakeboard7");
-    for method in ["minmax", "entropy"] {
+    for method in ["minmax", "entropy", "mse"] {
         let out = t.path().join(method);
         let mut args = vec!["quantize", "--plan", s(&fp32), "--calib", s(&calib)];
         args.extend(["--frames-per-seq", "2", "--method", method, "--per-channel", "off", "--out", s(&out)]);

@@ -38,7 +38,8 @@ pub struct QuantizeArgs {
     /// over it, so that ranges also cover targets that look otherwise.
     #[arg(long, default_value_t = 4, value_name = "N")]
     templates_per_seq: usize,
-    /// How activation ranges are chosen: minmax, percentile (99.99% of each side), entropy (KL).
+    /// How activation ranges are chosen: minmax, percentile (99.99% of each side), entropy (KL),
+    /// mse (least squared error).
     #[arg(long, default_value = "percentile", value_parser = parse_method)]
     method: Method,
     /// Per-output-channel weight scales: auto (where one scale loses over 2% of a weight and
@@ -76,7 +77,7 @@ pub struct QuantizeArgs {
 }
 
 fn parse_method(s: &str) -> Result<Method, String> {
-    Method::parse(s).ok_or_else(|| format!("`{s}` is not a method; expected minmax, percentile or entropy"))
+    Method::parse(s).ok_or_else(|| format!("`{s}` is not a method; expected minmax, percentile, entropy or mse"))
 }
 
 fn parse_per_channel(s: &str) -> Result<PerChannel, String> {

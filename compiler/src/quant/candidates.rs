@@ -37,6 +37,9 @@ pub struct Candidate {
     /// A `Relu` follows after a `MaxPool` (AlexNet's conv, BN, pool, ReLU): the output's range
     /// starts at 0, and pool and ReLU then run on u8.
     pub relu_after_pool: bool,
+    /// The output's only consumer is a `HardSwish`, which is 0 at and below -3 (MobileNetV3's
+    /// layers): the output's u8 range need not reach below that.
+    pub hard_swish_after: bool,
     /// The weight initializer (for [`Kind::ActMatMul`], the right-hand activation).
     pub weight: String,
     /// The graph multiplies by the weight's transpose (a linear layer's `Transpose` of a
@@ -97,6 +100,7 @@ pub fn candidates(graph: &pb::GraphProto) -> Vec<Candidate> {
                     output: n.output[0].clone(),
                     relu: None,
                     relu_after_pool: false,
+                    hard_swish_after: false,
                     weight: wname.clone(),
                     transposed: false,
                     depthwise: false,
@@ -125,6 +129,7 @@ pub fn candidates(graph: &pb::GraphProto) -> Vec<Candidate> {
             output: relu.map_or(out, |r| r.output[0].as_str()).to_string(),
             relu: relu.map(|r| r.name.clone()),
             relu_after_pool,
+            hard_swish_after: relu.is_none() && sole(out, "HardSwish").is_some(),
             weight: w.name.clone(),
             transposed,
             depthwise,
@@ -198,6 +203,39 @@ mod tests {
         // MatMul weights [K, N] are per column.
         let (_, s) = quantise_weights(&w, &[2, 2], 1, true);
         assert_eq!(s, vec![1.0 / 127.0, 0.5 / 127.0]);
+    }
+
+    #[test]
+    fn a_hard_swish_read_only_by_itself_is_marked() {
+        let node = |op: &str, name: &str, inputs: &[&str]| pb::NodeProto {
+            op_type: op.into(),
+            name: name.into(),
+            input: inputs.iter().map(|s| s.to_string()).collect(),
+            output: vec![format!("{name}_out")],
+            ..Default::default()
+        };
+        let w = pb::TensorProto {
+            name: "w".into(),
+            dims: vec![2, 2, 1, 1],
+            data_type: FLOAT,
+            float_data: vec![1.0; 4],
+            ..Default::default()
+        };
+        let graph = pb::GraphProto {
+            node: vec![
+                node("Conv", "a", &["x", "w"]),
+                node("HardSwish", "a_hs", &["a_out"]),
+                node("Conv", "b", &["a_hs_out", "w"]),
+                node("HardSwish", "b_hs", &["b_out"]),
+                node("Add", "b_add", &["b_out", "b_hs_out"]),
+            ],
+            initializer: vec![w],
+            ..Default::default()
+        };
+        let found = candidates(&graph);
+        let marked: Vec<(&str, bool)> = found.iter().map(|c| (c.node.as_str(), c.hard_swish_after)).collect();
+        // b's output is also read raw by the Add: its values below -3 matter there.
+        assert_eq!(marked, [("a", true), ("b", false)]);
     }
 
     #[test]

@@ -16,6 +16,7 @@
 mod calibrate;
 mod candidates;
 mod observer;
+mod ranges;
 mod rewrite;
 
 use std::collections::{BTreeMap, HashMap};
@@ -27,6 +28,7 @@ use tract_onnx::pb;
 pub use calibrate::Calibration;
 pub use candidates::{candidates, quantise_weights, Candidate, Kind};
 pub use observer::{Method, Observer, PERCENTILE};
+use ranges::Ranges;
 pub use rewrite::QParams;
 
 use prl_runtime::{CalibrationInfo, LayerDecision, QuantLayer, QuantizationInfo};
@@ -138,7 +140,7 @@ pub fn quantize(
     }
     let stats = calibrate::observe(model, graph, &cands, calib, progress)?;
     let inits: HashMap<&str, &pb::TensorProto> = graph.initializer.iter().map(|t| (t.name.as_str(), t)).collect();
-    let range = |v: &str| stats.observers[v].range(opts.method).unwrap_or((0.0, 0.0));
+    let ranges = Ranges::of(&stats, &cands, opts.method);
     let mut layers = vec![];
     for c in &cands {
         let (weight_error, per_channel, macs) = if c.kind == Kind::ActMatMul {
@@ -194,26 +196,12 @@ pub fn quantize(
             decision,
             per_channel,
             weight_error,
-            input_range: range(&c.input),
-            output_range: range(&c.output),
+            input_range: ranges.range[&c.input],
+            output_range: ranges.range[&c.output],
             sensitivity: None,
         });
     }
-    let mut params: HashMap<String, QParams> = stats
-        .observers
-        .keys()
-        .map(|v| {
-            let (lo, hi) = range(v);
-            (v.clone(), QParams::from_range(lo, hi))
-        })
-        .collect();
-    // A ReLU after the pool clips below 0 anyway: spend all 256 levels on [0, max].
-    for (c, l) in cands.iter().zip(layers.iter_mut()) {
-        if c.relu_after_pool {
-            l.output_range.0 = 0.0;
-            params.insert(c.output.clone(), QParams::from_range(0.0, l.output_range.1));
-        }
-    }
+    let params = ranges.params;
     let template = onnx.clone();
     if let Some(budget) = opts.budget {
         sensitivity(&template, model, calib, &params, &mut layers, opts.sensitivity_crops, progress)?;

@@ -34,6 +34,16 @@ impl QParams {
         }
         QParams { scale, zero_point: (-lo / scale).round().clamp(0.0, 255.0) as u8 }
     }
+
+    /// u8 parameters covering `[floor, hi]` whose lowest code stands for `floor` or less (where
+    /// rounding the zero point would put it above).
+    pub fn from_range_floor(floor: f32, hi: f32) -> QParams {
+        let mut p = QParams::from_range(floor, hi);
+        if -(p.zero_point as f32) * p.scale > floor && p.zero_point < 255 {
+            p.zero_point += 1;
+        }
+        p
+    }
 }
 
 /// What the rewrite needs to know about one quantised node.
@@ -308,5 +318,18 @@ mod tests {
         let p = QParams::from_range(-1.0, 3.0);
         assert_eq!(p.zero_point, 64);
         assert_eq!(QParams::from_range(0.0, 0.0).scale, 1.0);
+    }
+
+    #[test]
+    fn a_floor_stays_at_or_above_the_lowest_code() {
+        // [-3, 10]: 3/(13/255) = 58.8 rounds to 59, whose code stands for -3.008: kept.
+        // [-3, 9.2]: 3/(12.2/255) = 62.7 rounds to 63 (-3.014): kept. [-3, 16.5]:
+        // 3/(19.5/255) = 39.23 rounds down to 39 (-2.98), above -3: one code more.
+        for hi in [10.0, 9.2, 16.5, 83.758, 0.5] {
+            let p = QParams::from_range_floor(-3.0, hi);
+            let lowest = -(p.zero_point as f32) * p.scale;
+            assert!(lowest <= -3.0 && lowest > -3.0 - p.scale, "[-3, {hi}]: lowest code {lowest}");
+        }
+        assert_eq!(QParams::from_range_floor(-3.0, 16.5).zero_point, 40);
     }
 }
