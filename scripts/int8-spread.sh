@@ -12,7 +12,7 @@
 # Defaults: NanoTrack v2 (imported and compiled into target/int8-spread/ if needed), 5 seeds,
 # the README's int8 recipe (calibrated on building4), evaluated on wakeboard7 and wakeboard10.
 # PRL_PLAN=DIR takes another fp32 plan, PRL_CALIB / PRL_EVAL other sequences (space-separated
-# directories), PRL_BIN another binary. Needs python3 for the summary. Writes
+# directories), PRL_BIN another binary, PRL_FIRST_SEED the first seed (0; seeds run from it). Needs python3 for the summary. Writes
 # target/int8-spread/compare.json and compare.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -23,6 +23,8 @@ if [ $# -gt 0 ] && [ "$1" != "--" ]; then
 fi
 [ "${1:-}" = "--" ] && shift
 case $seeds in '' | *[!0-9]* | 0) echo "int8-spread.sh: SEEDS must be a positive whole number, not '$seeds'" >&2; exit 2 ;; esac
+first=${PRL_FIRST_SEED:-0}
+case $first in '' | *[!0-9]*) echo "int8-spread.sh: PRL_FIRST_SEED must be a whole number, not '$first'" >&2; exit 2 ;; esac
 recipe=("$@")
 if [ ${#recipe[@]} -eq 0 ]; then
     source scripts/nanotrack-int8-recipe.sh
@@ -44,7 +46,7 @@ fi
 calib_args=()
 for c in $calib; do calib_args+=(--calib "$c"); done
 plans=(--plan "$plan")
-for ((s = 0; s < seeds; s++)); do
+for ((s = first; s < first + seeds; s++)); do
     rm -rf "$work/int8-seed$s"
     $prl quantize --plan "$plan" "${calib_args[@]}" "${recipe[@]}" --seed "$s" --out "$work/int8-seed$s" >"$work/int8-seed$s.log"
     plans+=(--plan "$work/int8-seed$s")

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # An estimate of the tracking step's time on the Jetson Orin NX's CPU (8 Cortex-A78AE cores,
-# 2.0 GHz), made on an x86 machine, for NanoTrack v2 and PRL-Track, fp32 and int8, with the
+# 2.0 GHz), made on an x86 machine, for NanoTrack v2 (fp32, the int8 recipe and the faster
+# integer-depthwise plan) and PRL-Track, fp32 and int8, with the
 # runtime's operators and with tract's alone (PRL_OPS=tract):
 #
 #   bash scripts/orin-estimate.sh          # about 30 minutes on 2 cores (PRL-Track under qemu)
@@ -46,13 +47,17 @@ cargo build --release --bin prl
 mkdir -p "$W"
 gcc -shared -fPIC -O2 -o "$W/insn-count.so" scripts/qemu-insn-count.c
 
-plans=(nanotrack-fp32 nanotrack-int8)
+plans=(nanotrack-fp32 nanotrack-int8 nanotrack-int8-dw)
+source scripts/nanotrack-int8-recipe.sh
 if [ ! -d "$W/nanotrack-int8" ]; then
     "$HOST" import nanotrack --out "$W/nanotrack-model"
     "$HOST" compile --model "$W/nanotrack-model" --out "$W/nanotrack-fp32"
-    source scripts/nanotrack-int8-recipe.sh
     "$HOST" quantize --plan "$W/nanotrack-fp32" --calib "$SEQ" "${nanotrack_int8_recipe[@]}" \
         --out "$W/nanotrack-int8" >/dev/null
+fi
+if [ ! -d "$W/nanotrack-int8-dw" ]; then
+    "$HOST" quantize --plan "$W/nanotrack-fp32" --calib "$SEQ" "${nanotrack_int8_dw_recipe[@]}" \
+        --out "$W/nanotrack-int8-dw" >/dev/null
 fi
 if [ -z "${NANOTRACK_ONLY:-}" ]; then
     plans+=(prl-fp32 prl-fp32-wg prl-int8)
