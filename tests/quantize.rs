@@ -237,6 +237,19 @@ fn bad_arguments_are_one_line_errors_that_write_nothing() {
     let e = fails(&run(args));
     assert!(e.contains("already int8"), "{e}");
 
+    // A plan whose recorded source is not where the manifest says (a relative name from
+    // elsewhere, a moved checkpoint): named, with the way out.
+    let moved = t.path().join("moved-plan");
+    std::fs::create_dir_all(&moved).unwrap();
+    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fp32.join("plan.json")).unwrap()).unwrap();
+    let was = m["weights"]["path"].as_str().unwrap().to_string();
+    let text = std::fs::read_to_string(fp32.join("plan.json")).unwrap().replace(&was, "elsewhere/checkpoint.pth");
+    std::fs::write(moved.join("plan.json"), text).unwrap();
+    let mut args = base(&shared("wakeboard7"));
+    args[2] = s(&moved).into();
+    let e = fails(&run(args));
+    assert!(e.contains("`elsewhere/checkpoint.pth`, is not found from this directory") && e.contains("--model"), "{e}");
+
     // clap's own usage errors span lines; they still name the bad value.
     let o = prl(&["quantize", "--plan", s(&fp32), "--calib", s(&shared("wakeboard7")), "--method", "kmeans"]);
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("`kmeans` is not a method"));

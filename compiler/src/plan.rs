@@ -106,6 +106,20 @@ fn to_nnef(onnx: &[u8], info: &GraphInfo, context: &str) -> Result<Vec<u8>> {
 pub fn rebuild_model(m: &PlanManifest, path: &Path) -> Result<BuiltModel> {
     let w = &m.weights;
     let bad = |msg: String| Error::format(path, msg);
+    // The sources are recorded as they were named to `prl import` / `prl compile`: a relative
+    // name only resolves from the directory that command ran in.
+    for f in w.files.iter().map(|f| f.path.as_str()).chain(w.path.as_deref()) {
+        if !Path::new(f).exists() {
+            return Err(bad(format!(
+                "the source file the plan was compiled from, `{f}`, is not found{}; quantise with --model DIR instead",
+                if Path::new(f).is_relative() {
+                    " from this directory (run from the one it was compiled in)"
+                } else {
+                    ""
+                }
+            )));
+        }
+    }
     let model = match (w.kind.as_str(), &w.path, w.seed) {
         ("onnx", _, _) => {
             let file = |role: &str| w.files.iter().find(|f| f.role == role).map(|f| Path::new(&f.path));
