@@ -12,8 +12,8 @@
 # Defaults: NanoTrack v2 (imported and compiled into target/int8-spread/ if needed), 5 seeds,
 # the README's int8 recipe (calibrated on building4), evaluated on wakeboard7 and wakeboard10.
 # PRL_PLAN=DIR takes another fp32 plan, PRL_CALIB / PRL_EVAL other sequences (space-separated
-# directories), PRL_BIN another binary, PRL_FIRST_SEED the first seed (0; seeds run from it). Needs python3 for the summary. Writes
-# target/int8-spread/compare.json and compare.md.
+# directories), PRL_BIN another binary, PRL_FIRST_SEED the first seed (0; seeds run from it).
+# Needs python3 for the summary. Writes target/int8-spread/compare.json and compare.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 seeds=5

@@ -1,8 +1,8 @@
 //! Activation ranges from calibration data: running min/max plus magnitude histograms, and the
 //! four ways of turning them into a quantisation range (min/max, a percentile, the entropy/KL
-//! criterion of TensorRT's calibrator, or the least squared error). A tensor whose every value was a whole
-//! number in `[0, 255]` (the image crops the networks read) gets that range whatever the method:
-//! scale 1 and zero point 0 quantise it without loss.
+//! criterion of TensorRT's calibrator, or the least squared error). A tensor whose every value
+//! was a whole number in `[0, 255]` (the image crops the networks read) gets that range whatever
+//! the method: scale 1 and zero point 0 quantise it without loss.
 
 /// How an activation's range is chosen from what calibration saw.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
