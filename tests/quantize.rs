@@ -241,10 +241,10 @@ fn bad_arguments_are_one_line_errors_that_write_nothing() {
     // elsewhere, a moved checkpoint): named, with the way out.
     let moved = t.path().join("moved-plan");
     std::fs::create_dir_all(&moved).unwrap();
-    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fp32.join("plan.json")).unwrap()).unwrap();
-    let was = m["weights"]["path"].as_str().unwrap().to_string();
-    let text = std::fs::read_to_string(fp32.join("plan.json")).unwrap().replace(&was, "elsewhere/checkpoint.pth");
-    std::fs::write(moved.join("plan.json"), text).unwrap();
+    let text = std::fs::read_to_string(fp32.join("plan.json")).unwrap();
+    let m: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let was = m["weights"]["path"].as_str().unwrap();
+    std::fs::write(moved.join("plan.json"), text.replace(was, "elsewhere/checkpoint.pth")).unwrap();
     let mut args = base(&shared("wakeboard7"));
     args[2] = s(&moved).into();
     let e = fails(&run(args));
