@@ -90,10 +90,11 @@ def median(v):
     return statistics.median(v)
 
 
-def ort_int8(search_onnx, feed, out):
-    """ONNX Runtime's own int8 of the search graph: quantize_static, QDQ, per-channel weights,
-    u8 activations, calibrated on the crop prl benchmarked (ranges do not change the latency).
-    Biases stay float: with one calibration crop ORT finds no valid scale for some of them."""
+def ort_int8(search_onnx, feed, out, weights="s8"):
+    """ONNX Runtime's own int8 of the search graph: quantize_static, QDQ, per-channel weights
+    (i8, or u8 with `weights="u8"`), u8 activations, calibrated on the crop prl benchmarked
+    (ranges do not change the latency). Biases stay float: with one calibration crop ORT finds
+    no valid scale for some of them."""
     from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
     class Reader(CalibrationDataReader):
@@ -104,9 +105,43 @@ def ort_int8(search_onnx, feed, out):
             return self.items.pop() if self.items else None
 
     quantize_static(search_onnx, out, Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
-                    activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                    activation_type=QuantType.QUInt8,
+                    weight_type=QuantType.QUInt8 if weights == "u8" else QuantType.QInt8,
                     extra_options={"QuantizeBias": False})
     return out
+
+
+def relative_error(got, ref):
+    """‖got − ref‖ / ‖ref‖ over every output (`prl compare`'s measure)."""
+    num = sum(float(np.sum((got[n] - ref[n]) ** 2)) for n in ref)
+    den = sum(float(np.sum(ref[n] ** 2)) for n in ref)
+    return (num / max(den, 1e-30)) ** 0.5
+
+
+def ort_int8_exactness():
+    """Whether ONNX Runtime's int8 convolution is exact on this CPU: a 1x1 QLinearConv of 64 u8
+    channels at 255 against i8 weights of 127 (the extremes of the u8 x s8 products its QDQ
+    models run), scaled so the exact sum, 64·255·127, requantises to 200. Where the CPU has no
+    VNNI, MLAS multiplies u8 by s8 with `vpmaddubsw`, whose pairs of products saturate at
+    32767, and gives about half of it (ONNX Runtime's quantisation docs name `reduce_range`,
+    7-bit weights, for this). Returns (exact, ONNX Runtime's)."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    ci, exact = 64, 200
+    scale = 64 * 255 * 127 / exact
+    consts = {"xs": np.float32(1), "xz": np.uint8(0), "w": np.full((1, ci, 1, 1), 127, np.int8),
+              "ws": np.array([1], np.float32), "wz": np.array([0], np.int8), "ys": np.float32(scale),
+              "yz": np.uint8(0)}
+    inits = [numpy_helper.from_array(np.asarray(v), n) for n, v in consts.items()]
+    node = helper.make_node("QLinearConv", ["x", "xs", "xz", "w", "ws", "wz", "ys", "yz"], ["y"])
+    graph = helper.make_graph([node], "probe", [helper.make_tensor_value_info("x", TensorProto.UINT8, [1, ci, 8, 8])],
+                              [helper.make_tensor_value_info("y", TensorProto.UINT8, [1, 1, 8, 8])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 14)])
+    so = ort.SessionOptions()
+    so.log_severity_level = 3
+    sess = ort.InferenceSession(model.SerializeToString(), so, providers=["CPUExecutionProvider"])
+    y = sess.run(None, {"x": np.full((1, ci, 8, 8), 255, np.uint8)})[0]
+    return exact, int(y.ravel()[0])
 
 
 def main():
@@ -201,6 +236,18 @@ def run(args, work):
     report = {"model": model, "plan": plan, "onnxruntime": ort.__version__, "rounds": args.rounds,
               "runs": args.runs, "results": []}
     print_kernels(args, plan, work, report)
+    if args.int8_plan:
+        exact, got = ort_int8_exactness()
+        verdict = "exact" if got == exact else "saturates: its u8 x s8 pairs of products stop at 32767 (vpmaddubsw)"
+        print(f"ONNX Runtime's int8 convolution on this CPU: {got} where the exact result is {exact} ({verdict}); "
+              "prl's int8 kernels are exact on every path")
+        report["onnxruntime_int8_probe"] = {"exact": exact, "onnxruntime": got}
+        # Both int8 searches against fp32 on the benchmarked crop (calibrated differently: prl's
+        # plan as `prl quantize` made it, ONNX Runtime's on this one crop).
+        t8 = os.path.join(work, "tensors-int8")
+        sh([args.prl, "bench", "--plan", args.int8_plan, "--runs", "1", "--top", "0", "--save-tensors", t8])
+        ours = load_tensors(t8)
+        report["int8_output_error"] = {"prl": None, "onnxruntime": None}
     rows = []
     for threads in [int(t) for t in args.threads.split(",")]:
         search = session(os.path.join(model, "search.onnx"), threads)
@@ -209,14 +256,40 @@ def run(args, work):
         diff = max(agreement(search, sf, tensors), agreement(template, tf, tensors))
         timed(search, sf, 2)
         timed(template, tf, 2)
+        U8W = "search network int8, ORT u8 weights"
         prl = {"template network": [], "search network": [], "search network int8": []}
-        peer = {"template network": [], "search network": [], "search network int8": []}
+        peer = {"template network": [], "search network": [], "search network int8": [], U8W: []}
         if args.int8_plan:
             q = os.path.join(work, "search-int8.onnx")
             if not os.path.exists(q):
                 ort_int8(os.path.join(model, "search.onnx"), sf, q)
             search8 = session(q, threads)
             timed(search8, sf, 2)
+            # Its u8 x u8 form (u8 weights with zero points), which MLAS runs exactly on 16-bit
+            # products where the u8 x s8 one saturates (AVX2 without VNNI): the exact peer there.
+            qu = os.path.join(work, "search-int8-u8w.onnx")
+            if not os.path.exists(qu):
+                ort_int8(os.path.join(model, "search.onnx"), sf, qu, weights="u8")
+            search8u = session(qu, threads)
+            timed(search8u, sf, 2)
+            if report["int8_output_error"]["prl"] is None:
+                names = [o.name for o in search.get_outputs()]
+                ref = {n: tensors[n] for n in names}
+                theirs = dict(zip(names, search8.run(names, sf)))
+                # ONNX Runtime's QDQ model as written (no graph optimisation: each quantise and
+                # dequantise in float, the convolutions f32): what its quantisation alone costs.
+                so = ort.SessionOptions()
+                so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+                so.log_severity_level = 3
+                written = ort.InferenceSession(q, so, providers=["CPUExecutionProvider"])
+                err = {"prl": relative_error({n: ours[n] for n in names}, ref),
+                       "onnxruntime": relative_error(theirs, ref),
+                       "onnxruntime_qdq_in_float": relative_error(dict(zip(names, written.run(names, sf))), ref),
+                       "onnxruntime_u8_weights": relative_error(dict(zip(names, search8u.run(names, sf))), ref)}
+                report["int8_output_error"] = err
+                print(f"int8 search outputs against fp32 on this crop, ‖int8 − fp32‖ / ‖fp32‖: prl {err['prl']:.4f}, "
+                      f"ONNX Runtime {err['onnxruntime']:.4f} (its QDQ model computed in float: "
+                      f"{err['onnxruntime_qdq_in_float']:.4f}; with u8 weights: {err['onnxruntime_u8_weights']:.4f})")
         for r in range(args.rounds):
             plans = [(plan, "")] + ([(args.int8_plan, " int8")] if args.int8_plan else [])
             for pl, suffix in plans:
@@ -231,19 +304,21 @@ def run(args, work):
             peer["search network"] += timed(search, sf, args.runs)
             if args.int8_plan:
                 peer["search network int8"] += timed(search8, sf, args.runs)
-        stages = ("search network", "template network") + (("search network int8",) if args.int8_plan else ())
+                peer[U8W] += timed(search8u, sf, args.runs)
+        stages = ("search network", "template network") + (("search network int8", U8W) if args.int8_plan else ())
         for stage in stages:
-            a, b = median(prl[stage]), median(peer[stage])
+            mine = prl["search network int8"] if stage == U8W else prl[stage]
+            a, b = median(mine), median(peer[stage])
             rows.append((stage, threads, a, b, a / b))
             report["results"].append({"stage": stage, "threads": threads, "prl_median_ms": a,
                                       "onnxruntime_median_ms": b, "ratio": a / b,
-                                      "prl_samples_ms": prl[stage], "onnxruntime_samples_ms": peer[stage],
+                                      "prl_samples_ms": mine, "onnxruntime_samples_ms": peer[stage],
                                       "max_relative_output_difference": diff})
         print(f"{threads} thread(s): outputs agree within {diff:.1e} of their range")
 
-    print(f"\n{'graph':<20} {'threads':>7} {'prl ms':>9} {'ORT ms':>9} {'prl/ORT':>8}")
+    print(f"\n{'graph':<36} {'threads':>7} {'prl ms':>9} {'ORT ms':>9} {'prl/ORT':>8}")
     for stage, threads, a, b, ratio in rows:
-        print(f"{stage:<20} {threads:>7} {a:>9.1f} {b:>9.1f} {ratio:>8.2f}")
+        print(f"{stage:<36} {threads:>7} {a:>9.1f} {b:>9.1f} {ratio:>8.2f}")
     if args.json:
         tmp = args.json + ".tmp"
         with open(tmp, "w") as f:
