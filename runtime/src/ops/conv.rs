@@ -75,12 +75,23 @@ fn deinterleave(row: &[f32], even: &mut [f32], odd: &mut [f32]) {
     };
     #[cfg(not(target_arch = "x86_64"))]
     let done = 0;
+    deinterleave_rest(row, even, odd, done);
+}
+
+/// [`deinterleave`]'s pairs from pair `done` on, one by one, and a last odd value.
+fn deinterleave_rest(row: &[f32], even: &mut [f32], odd: &mut [f32], done: usize) {
     for ((e, o), pair) in even[done..].iter_mut().zip(odd[done..].iter_mut()).zip(row[2 * done..].chunks_exact(2)) {
         (*e, *o) = (pair[0], pair[1]);
     }
     if row.len() % 2 == 1 {
         even[even.len() - 1] = row[row.len() - 1];
     }
+}
+
+/// Where padded row `yp` starts in a plane padded for stride 2 (four phases `[row parity]
+/// [column parity][hq][wq]`): its row parity's even-column phase, row `yp / 2`.
+fn phase_slot(yp: usize, hq: usize, wq: usize) -> usize {
+    (yp % 2) * 2 * hq * wq + (yp / 2) * wq
 }
 
 /// [`deinterleave`] 32 values at a time (two loads, two permutes); returns how many pairs it
@@ -166,8 +177,7 @@ unsafe fn split_rows_avx512(
     let load_hi = ((1u64 << rest.saturating_sub(16)) - 1) as __mmask16;
     let (keep_e, keep_o) = (((1u32 << rest.div_ceil(2)) - 1) as __mmask16, ((1u32 << (rest / 2)) - 1) as __mmask16);
     for y in 0..rows {
-        let yp = y + pad_top;
-        let slot = (yp % 2) * 2 * hq * wq + (yp / 2) * wq;
+        let slot = phase_slot(y + pad_top, hq, wq);
         // SAFETY: row y's values are within `src`, its runs within `dst` (the caller's
         // promise); masked lanes are neither read nor written.
         unsafe {
@@ -220,8 +230,10 @@ unsafe fn copy_rows_avx2(src: *const f32, w: usize, rows: usize, dst: *mut f32, 
     }
 }
 
-/// [`split_rows_avx512`] on AVX2: 16 values a step ([`deinterleave_avx2`]'s shuffles), a row's
-/// last `w % 16` one by one (same contract).
+/// [`split_rows_avx512`] on AVX2: each row by [`deinterleave_avx2`], 16 values a step, and
+/// [`deinterleave_rest`] (same contract; the row's two runs are disjoint, as `w >= 2` makes
+/// them). Per row through `deinterleave`, a length check, an ISA check and slicing took more
+/// than the copy on NanoTrack's small planes.
 ///
 /// # Safety
 /// As [`split_rows_avx512`], the CPU having AVX2.
@@ -238,26 +250,16 @@ unsafe fn split_rows_avx2(
     hq: usize,
     wq: usize,
 ) {
-    use std::arch::x86_64::*;
-    let blocks = w / 16;
-    let order = |v: __m256| _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(v)));
     for y in 0..rows {
-        let yp = y + pad_top;
-        let slot = (yp % 2) * 2 * hq * wq + (yp / 2) * wq;
-        // SAFETY: row y's values are within `src`, its runs (`ceil(w / 2)` and `floor(w / 2)`
-        // values) within `dst` (the caller's promise).
+        let slot = phase_slot(y + pad_top, hq, wq);
+        // SAFETY: row y's `w` values are within `src`, its runs (`ceil(w / 2)` and
+        // `floor(w / 2)` values) within `dst` and apart (the caller's promise).
         unsafe {
-            let (row, even, odd) = (src.add(y * w), dst.add(slot + at[0]), dst.add(slot + at[1]));
-            for b in 0..blocks {
-                let lo = _mm256_loadu_ps(row.add(16 * b));
-                let hi = _mm256_loadu_ps(row.add(16 * b + 8));
-                _mm256_storeu_ps(even.add(8 * b), order(_mm256_shuffle_ps::<0b10_00_10_00>(lo, hi)));
-                _mm256_storeu_ps(odd.add(8 * b), order(_mm256_shuffle_ps::<0b11_01_11_01>(lo, hi)));
-            }
-            for i in 16 * blocks..w {
-                let run = if i % 2 == 0 { even } else { odd };
-                *run.add(i / 2) = *row.add(i);
-            }
+            let row = std::slice::from_raw_parts(src.add(y * w), w);
+            let even = std::slice::from_raw_parts_mut(dst.add(slot + at[0]), w.div_ceil(2));
+            let odd = std::slice::from_raw_parts_mut(dst.add(slot + at[1]), w / 2);
+            let done = deinterleave_avx2(row, even, odd);
+            deinterleave_rest(row, even, odd, done);
         }
     }
 }
@@ -371,8 +373,7 @@ impl ConvShape {
             let rows = src.len() / w;
             // Every row's two runs within `dst` (the last two rows reach furthest: one of each
             // row parity).
-            let slot = |yp: usize| (yp % 2) * 2 * hq * wq + (yp / 2) * wq;
-            let reach = (rows.saturating_sub(2)..rows).map(|y| slot(y + self.pad[0])).max().unwrap_or(0);
+            let reach = (rows.saturating_sub(2)..rows).map(|y| phase_slot(y + self.pad[0], hq, wq)).max().unwrap_or(0);
             assert!(rows == 0 || reach + even_at.max(odd_at) + ne <= dst.len(), "rows within the padded plane");
             // SAFETY: the CPU has AVX-512F, or AVX2; `rows · w <= src.len()`, and every row's
             // runs are within `dst` (asserted above: the slots grow with the row within each
@@ -389,7 +390,7 @@ impl ConvShape {
         }
         for (y, row) in src.chunks_exact(w).enumerate() {
             let yp = y + self.pad[0];
-            let slot = (yp % 2) * 2 * hq * wq + (yp / 2) * wq;
+            let slot = phase_slot(yp, hq, wq);
             let (e, o) = (slot + even_at, slot + odd_at);
             match dst.get_disjoint_mut([e..e + ne, o..o + no]) {
                 Ok([even, odd]) => deinterleave(row, even, odd),
@@ -412,7 +413,7 @@ impl ConvShape {
     /// value of (a one-column row) is left out.
     pub(crate) fn phase_runs(&self, yp: usize) -> impl Iterator<Item = (usize, usize)> {
         let (hq, wq) = self.phase();
-        let row_of = move |parity: usize| ((yp % 2) * 2 + parity) * hq * wq + (yp / 2) * wq;
+        let row_of = move |parity: usize| phase_slot(yp, hq, wq) + parity * hq * wq;
         let p = self.pad[1];
         let w = self.w;
         [(0, p & 1, p >> 1), (1, (p + 1) & 1, (p + 1) >> 1)]
