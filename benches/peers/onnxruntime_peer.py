@@ -225,6 +225,52 @@ def print_kernels(args, plan, work, report):
         report["kernels"][tag] = counts
 
 
+def int8_peers(args, model, work, tensors, report):
+    """ONNX Runtime's int8 forms of `search.onnx` (`ort_int8`: i8 weights, and u8 weights, which
+    MLAS multiplies exactly on 16-bit products where the i8 form saturates: the exact peer on AVX2
+    without VNNI), made once for every thread count. Before the timing, says whether ONNX
+    Runtime's int8 convolution is exact on this CPU (`ort_int8_exactness`) and how far each int8
+    search is from fp32 on the benchmarked crop (prl's plan as `prl quantize` calibrated it, ONNX
+    Runtime's on this one crop), into `report` too. Returns the two models' paths."""
+    exact, saturated, got = ort_int8_exactness()
+    verdict = ("exact" if got == exact else
+               "saturates: its u8 x s8 pairs of products stop at 32767 (vpmaddubsw)" if got == saturated else
+               "not exact")
+    print(f"ONNX Runtime's int8 convolution on this CPU: {got} where the exact result is {exact} ({verdict}); "
+          "prl's int8 kernels are exact on every path")
+    report["onnxruntime_int8_probe"] = {"exact": exact, "onnxruntime": got}
+    t8 = os.path.join(work, "tensors-int8")
+    sh([args.prl, "bench", "--plan", args.int8_plan, "--runs", "1", "--top", "0", "--save-tensors", t8])
+    ours = load_tensors(t8)
+    search_onnx = os.path.join(model, "search.onnx")
+    search = session(search_onnx, 1)
+    sf = feeds(search, tensors)
+    q, qu = os.path.join(work, "search-int8.onnx"), os.path.join(work, "search-int8-u8w.onnx")
+    ort_int8(search_onnx, sf, q)
+    ort_int8(search_onnx, sf, qu, weights="u8")
+    names = [o.name for o in search.get_outputs()]
+    ref = {n: tensors[n] for n in names}
+    # ONNX Runtime's QDQ model as written (no graph optimisation: each quantise and dequantise in
+    # float, the convolutions f32): what its quantisation alone costs.
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    so.log_severity_level = 3
+    written = ort.InferenceSession(q, so, providers=["CPUExecutionProvider"])
+
+    def outputs(sess):
+        return dict(zip(names, sess.run(names, sf)))
+
+    err = {"prl": relative_error({n: ours[n] for n in names}, ref),
+           "onnxruntime": relative_error(outputs(session(q, 1)), ref),
+           "onnxruntime_qdq_in_float": relative_error(outputs(written), ref),
+           "onnxruntime_u8_weights": relative_error(outputs(session(qu, 1)), ref)}
+    report["int8_output_error"] = err
+    print(f"int8 search outputs against fp32 on this crop, ‖int8 − fp32‖ / ‖fp32‖: prl {err['prl']:.4f}, "
+          f"ONNX Runtime {err['onnxruntime']:.4f} (its QDQ model computed in float: "
+          f"{err['onnxruntime_qdq_in_float']:.4f}; with u8 weights: {err['onnxruntime_u8_weights']:.4f})")
+    return q, qu
+
+
 def run(args, work):
     model, plan = model_and_plan(args, work)
     tdir = os.path.join(work, "tensors")
@@ -238,20 +284,7 @@ def run(args, work):
     report = {"model": model, "plan": plan, "onnxruntime": ort.__version__, "rounds": args.rounds,
               "runs": args.runs, "results": []}
     print_kernels(args, plan, work, report)
-    if args.int8_plan:
-        exact, saturated, got = ort_int8_exactness()
-        verdict = ("exact" if got == exact else
-                   "saturates: its u8 x s8 pairs of products stop at 32767 (vpmaddubsw)" if got == saturated else
-                   "not exact")
-        print(f"ONNX Runtime's int8 convolution on this CPU: {got} where the exact result is {exact} ({verdict}); "
-              "prl's int8 kernels are exact on every path")
-        report["onnxruntime_int8_probe"] = {"exact": exact, "onnxruntime": got}
-        # Both int8 searches against fp32 on the benchmarked crop (calibrated differently: prl's
-        # plan as `prl quantize` made it, ONNX Runtime's on this one crop).
-        t8 = os.path.join(work, "tensors-int8")
-        sh([args.prl, "bench", "--plan", args.int8_plan, "--runs", "1", "--top", "0", "--save-tensors", t8])
-        ours = load_tensors(t8)
-        report["int8_output_error"] = {"prl": None, "onnxruntime": None}
+    q, qu = int8_peers(args, model, work, tensors, report) if args.int8_plan else (None, None)
     rows = []
     for threads in [int(t) for t in args.threads.split(",")]:
         search = session(os.path.join(model, "search.onnx"), threads)
@@ -264,36 +297,9 @@ def run(args, work):
         prl = {"template network": [], "search network": [], "search network int8": []}
         peer = {"template network": [], "search network": [], "search network int8": [], U8W: []}
         if args.int8_plan:
-            q = os.path.join(work, "search-int8.onnx")
-            if not os.path.exists(q):
-                ort_int8(os.path.join(model, "search.onnx"), sf, q)
-            search8 = session(q, threads)
+            search8, search8u = session(q, threads), session(qu, threads)
             timed(search8, sf, 2)
-            # Its u8 x u8 form (u8 weights with zero points), which MLAS runs exactly on 16-bit
-            # products where the u8 x s8 one saturates (AVX2 without VNNI): the exact peer there.
-            qu = os.path.join(work, "search-int8-u8w.onnx")
-            if not os.path.exists(qu):
-                ort_int8(os.path.join(model, "search.onnx"), sf, qu, weights="u8")
-            search8u = session(qu, threads)
             timed(search8u, sf, 2)
-            if report["int8_output_error"]["prl"] is None:
-                names = [o.name for o in search.get_outputs()]
-                ref = {n: tensors[n] for n in names}
-                theirs = dict(zip(names, search8.run(names, sf)))
-                # ONNX Runtime's QDQ model as written (no graph optimisation: each quantise and
-                # dequantise in float, the convolutions f32): what its quantisation alone costs.
-                so = ort.SessionOptions()
-                so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
-                so.log_severity_level = 3
-                written = ort.InferenceSession(q, so, providers=["CPUExecutionProvider"])
-                err = {"prl": relative_error({n: ours[n] for n in names}, ref),
-                       "onnxruntime": relative_error(theirs, ref),
-                       "onnxruntime_qdq_in_float": relative_error(dict(zip(names, written.run(names, sf))), ref),
-                       "onnxruntime_u8_weights": relative_error(dict(zip(names, search8u.run(names, sf))), ref)}
-                report["int8_output_error"] = err
-                print(f"int8 search outputs against fp32 on this crop, ‖int8 − fp32‖ / ‖fp32‖: prl {err['prl']:.4f}, "
-                      f"ONNX Runtime {err['onnxruntime']:.4f} (its QDQ model computed in float: "
-                      f"{err['onnxruntime_qdq_in_float']:.4f}; with u8 weights: {err['onnxruntime_u8_weights']:.4f})")
         for r in range(args.rounds):
             plans = [(plan, "")] + ([(args.int8_plan, " int8")] if args.int8_plan else [])
             for pl, suffix in plans:
