@@ -11,10 +11,10 @@
 # pair it writes), runs each target for SECONDS with a 1 s hang limit and a 2 GiB memory limit,
 # and prints one line per target: seconds taken, executions, executions per second, corpus size
 # and findings. PRL_FUZZ_RUNS=N stops a target after N executions (or SECONDS, whichever is
-# first). PRL_FUZZ_PROFILE=dev builds the targets unoptimised (cargo fuzz --dev, with overflow
-# checks): half the build time of the default optimised ones (6.5 against 12.3 minutes on 2
-# cores of an AMD EPYC), at 1/10 to 1/30 of the executions a second, with a 10 s hang limit:
-# for short smoke runs; long runs keep the default.
+# first). Targets are optimised, with debug assertions and overflow checks (cargo fuzz's
+# default). PRL_FUZZ_PROFILE=dev builds them unoptimised (cargo fuzz --dev): half the build
+# time (6.5 against 12.3 minutes on 2 cores of an AMD EPYC), at 1/10 to 1/30 of the executions
+# a second, with a 10 s hang limit: for short smoke runs; long runs keep the default.
 # Findings (crash, timeout, out-of-memory inputs) are in fuzz/artifacts/<target>/; the exit
 # status is non-zero when there are any. Corpora grow in target/fuzz-corpus/ across runs.
 set -euo pipefail
@@ -45,13 +45,15 @@ if [ ! -f "$work/seeds.done" ] || [ ! -d "$work/seeds/tiny/plan" ]; then
 fi
 plan=$(cd "$work/seeds/tiny/plan" && pwd)
 
-# cargo fuzz's profile flag: optimised (its default) unless PRL_FUZZ_PROFILE=dev.
+# cargo fuzz's default is optimised with debug assertions and overflow checks (and one codegen
+# unit, which makes its build the slow one); its `--release` flag would drop the assertions, so
+# the default passes no flag. PRL_FUZZ_PROFILE=dev: `--dev`, unoptimised, assertions on.
 case "${PRL_FUZZ_PROFILE:-release}" in
-    release) profile=--release hang=1 ;;
-    dev) profile=--dev hang=10 ;;
+    release) profile=() hang=1 ;;
+    dev) profile=(--dev) hang=10 ;;
     *) echo "error: PRL_FUZZ_PROFILE must be release or dev, not '$PRL_FUZZ_PROFILE'" >&2; exit 2 ;;
 esac
-cargo fuzz build "$profile" -s none
+cargo fuzz build "${profile[@]}" -s none
 
 status=0
 printf '%-12s %8s %12s %10s %8s %s\n' target seconds executions "exec/s" corpus findings
@@ -61,7 +63,7 @@ for t in "${targets[@]}"; do
     before=$(ls "fuzz/artifacts/$t" | wc -l)
     log="$work/$t.log"
     start=$SECONDS
-    PRL_FUZZ_PLAN="$plan" PRL_SHARED="$shared" cargo fuzz run "$profile" -s none "$t" "$corpus/$t" -- \
+    PRL_FUZZ_PLAN="$plan" PRL_SHARED="$shared" cargo fuzz run "${profile[@]}" -s none "$t" "$corpus/$t" -- \
         -max_total_time="$seconds" ${PRL_FUZZ_RUNS:+-runs="$PRL_FUZZ_RUNS"} -timeout=$hang -rss_limit_mb=2048 -print_final_stats=1 \
         -artifact_prefix="fuzz/artifacts/$t/" >"$log" 2>&1 || true
     took=$((SECONDS - start))
