@@ -13,8 +13,8 @@
 # and findings. PRL_FUZZ_RUNS=N stops a target after N executions (or SECONDS, whichever is
 # first). Targets are optimised, with debug assertions and overflow checks (cargo fuzz's
 # default). PRL_FUZZ_PROFILE=dev builds them unoptimised (cargo fuzz --dev): half the build
-# time (5.1-6.5 against 12.3 minutes on 2 cores of an AMD EPYC), at 1/10 to 1/30 of the executions
-# a second, with a 10 s hang limit: for short smoke runs; long runs keep the default.
+# time (5.1-6.5 against 12.3 minutes on 2 cores of an AMD EPYC), at 1/4 to 1/30 of the
+# executions a second, with a 10 s hang limit: for short smoke runs; long runs keep the default.
 # Findings (crash, timeout, out-of-memory inputs) are in fuzz/artifacts/<target>/; the exit
 # status is non-zero when there are any. Corpora grow in target/fuzz-corpus/ across runs.
 set -euo pipefail
