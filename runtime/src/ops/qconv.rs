@@ -295,7 +295,7 @@ fn has_vnni_words() -> bool {
     words_path() == Some(WordsPath::Vnni)
 }
 
-/// Whether HMG's linear layers run as [`PackedQConv`]s here ([`matmul_shape`]): on the AVX2
+/// Whether HMG's linear layers run as [`PackedQConv`]s here (`matching::matmul_shape`): on the AVX2
 /// and SDOT words paths, and on VNNI's unless tract's integer products run on AMX tiles (its
 /// `avx512amx_mmm_i32_16x16` took them in 2.35-2.41 ms per PRL-Track int8 step on one thread,
 /// 1.46-1.52 on two, against 3.0-3.1 and 1.83-1.85 on VNNI, 2026-12-06).
