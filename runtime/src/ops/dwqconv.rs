@@ -34,7 +34,7 @@ use super::dwconv::DepthwiseConv;
 use super::dwqconv_kernel;
 #[cfg(target_arch = "aarch64")]
 use super::dwqconv_sdot;
-use super::qconv::{konst_values, requant_scales, sum_bound, weight_scales};
+use super::qconv::{konst_values, quant_params, requant_scales, sum_bound};
 use super::qconv_kernel::{exact_fits, requantise};
 use super::quant::DequantizeU8;
 use super::{all_ones, output_tensor_written, pads_2d};
@@ -550,24 +550,15 @@ pub(crate) fn depthwise_q(model: &TypedModel, node: &TypedNode) -> TractResult<O
         return Ok(None);
     }
     let (Some(kernel), Some(bias)) = (&facts[1].konst, konst_values::<i32>(facts[2], c)?) else { return Ok(None) };
-    let params = (
-        konst_values::<i32>(facts[3], 1)?,
-        konst_values::<f32>(facts[4], 1)?,
-        konst_values::<i32>(facts[5], c)?,
-        weight_scales(facts[6], c)?,
-        konst_values::<i32>(facts[7], 1)?,
-        konst_values::<f32>(facts[8], 1)?,
-    );
-    let (Some(x0), Some(x_scale), Some(k0), Some(k_scale), Some(y0), Some(y_scale)) = params else { return Ok(None) };
-    let (Ok(x0), Ok(y0)) = (u8::try_from(x0[0]), u8::try_from(y0[0])) else { return Ok(None) };
-    if k0.iter().any(|&z| z != 0) || kernel.len() != c * kh * kw {
+    let Some(q) = quant_params(&facts, c)? else { return Ok(None) };
+    if kernel.len() != c * kh * kw {
         return Ok(None);
     }
     let kernel = kernel.try_as_plain_ram()?;
     // SAFETY: the kernel's datum type is i8, possibly with quantisation parameters (checked).
     let kernel = unsafe { kernel.as_slice_unchecked::<i8>() };
-    let scale = requant_scales(x_scale[0], &k_scale, y_scale[0], c);
-    let op = DepthwiseQConv::new(shape, batch, kernel, &bias, (x0, &scale, y0), node.outputs[0].fact.datum_type)?;
+    let scale = requant_scales(q.x_scale, &q.k_scale, q.y_scale, c);
+    let op = DepthwiseQConv::new(shape, batch, kernel, &bias, (q.x0, &scale, q.y0), node.outputs[0].fact.datum_type)?;
     // tract's exact product is only ours within these bounds (see [`exact_fits`]).
     if op.exact && !exact_fits(scale[0], sum_bound(kernel, &bias, kh * kw)) {
         return Ok(None);

@@ -39,7 +39,7 @@ mod tests;
 mod words;
 
 pub(crate) use matching::packed_q;
-pub(super) use matching::{konst_values, requant_scales, sum_bound, weight_scales};
+pub(super) use matching::{konst_values, quant_params, requant_scales, sum_bound};
 #[cfg(test)]
 pub(super) use tests::{parting_case, tract_q_conv};
 use words::{transpose_block, Src, TRANSPOSE_ROWS};

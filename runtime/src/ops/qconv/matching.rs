@@ -16,7 +16,7 @@ use super::{has_words_path, products_here, Batch, PackedQConv, Product, QuantPar
 
 /// A quantised layer's weight scales as its graph holds them: one (per-tensor weights) or one
 /// per output channel (`co`); `None` if not constant or of another length.
-pub(in crate::ops) fn weight_scales(fact: &TypedFact, co: usize) -> TractResult<Option<Vec<f32>>> {
+fn weight_scales(fact: &TypedFact, co: usize) -> TractResult<Option<Vec<f32>>> {
     Ok(konst_values::<f32>(fact, 1)?.or(konst_values::<f32>(fact, co)?))
 }
 
@@ -80,17 +80,8 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     }
     let co = shape.co;
     let (Some(kernel), Some(bias)) = (&facts[1].konst, konst_values::<i32>(facts[2], co)?) else { return Ok(None) };
-    let params = (
-        konst_values::<i32>(facts[3], 1)?,
-        konst_values::<f32>(facts[4], 1)?,
-        konst_values::<i32>(facts[5], co)?,
-        weight_scales(facts[6], co)?,
-        konst_values::<i32>(facts[7], 1)?,
-        konst_values::<f32>(facts[8], 1)?,
-    );
-    let (Some(x0), Some(x_scale), Some(k0), Some(k_scale), Some(y0), Some(y_scale)) = params else { return Ok(None) };
-    let (Ok(x0), Ok(y0)) = (u8::try_from(x0[0]), u8::try_from(y0[0])) else { return Ok(None) };
-    if k0.iter().any(|&z| z != 0) || kernel.len() != co * shape.ci * shape.kh * shape.kw {
+    let Some(q) = quant_params(&facts, co)? else { return Ok(None) };
+    if kernel.len() != co * shape.ci * shape.kh * shape.kw {
         return Ok(None);
     }
     let kernel = kernel.try_as_plain_ram()?;
@@ -105,7 +96,6 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
         }
         _ => kernel,
     };
-    let q = QuantParams { x0, x_scale: x_scale[0], k_scale, y0, y_scale: y_scale[0] };
     let bound = sum_bound(kernel, &bias, shape.ci * shape.kh * shape.kw);
     let op = PackedQConv::new(shape, kernel, &bias, q, out_dt)?;
     if op.exact && !exact_fits(op.scale[0], bound) {
@@ -113,6 +103,26 @@ pub(crate) fn packed_q(model: &TypedModel, node: &TypedNode) -> TractResult<Opti
     }
     let matmul = matmul.map(|(product, _)| Arc::new(product));
     Ok(Some(PackedQConv { batch, matmul, ..op }))
+}
+
+/// The quantisation parameters of a quantised `Conv` or `EinSum` of `co` output channels, from
+/// its inputs after the data, the weights and the bias (x0, x_scale, w0, w_scale, y0, y_scale),
+/// if each is constant, the zero points are bytes and the weights' zero point is 0.
+pub(in crate::ops) fn quant_params(facts: &[&TypedFact], co: usize) -> TractResult<Option<QuantParams>> {
+    let params = (
+        konst_values::<i32>(facts[3], 1)?,
+        konst_values::<f32>(facts[4], 1)?,
+        konst_values::<i32>(facts[5], co)?,
+        weight_scales(facts[6], co)?,
+        konst_values::<i32>(facts[7], 1)?,
+        konst_values::<f32>(facts[8], 1)?,
+    );
+    let (Some(x0), Some(x_scale), Some(k0), Some(k_scale), Some(y0), Some(y_scale)) = params else { return Ok(None) };
+    let (Ok(x0), Ok(y0)) = (u8::try_from(x0[0]), u8::try_from(y0[0])) else { return Ok(None) };
+    if k0.iter().any(|&z| z != 0) {
+        return Ok(None);
+    }
+    Ok(Some(QuantParams { x0, x_scale: x_scale[0], k_scale, y0, y_scale: y_scale[0] }))
 }
 
 /// The largest magnitude a layer's sums `Σ (x − x0)·w[o] + bias[o]` can take (`|x − x0| ≤
