@@ -27,6 +27,7 @@ mod dwqconv_kernel;
 mod dwqconv_sdot;
 mod matmul;
 mod norm;
+mod par;
 mod permute;
 mod pointwise;
 mod pool;
@@ -35,6 +36,7 @@ mod qconv_amx;
 mod qconv_kernel;
 mod qconv_lanes;
 mod quant;
+mod scratch;
 mod se;
 mod softmax;
 mod winograd;
@@ -61,6 +63,11 @@ pub use xcorr::DepthwiseXCorr;
 
 use crate::Winograd;
 use tract_nnef::internal::*;
+
+use par::{par_chunks, par_for, serial_if_small, threads, SyncPtr, SERIAL_MACS, SHARE};
+#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
+use scratch::with_bytes;
+use scratch::{output_tensor, output_tensor_written, unwritten_runs, with_padded, with_words};
 
 /// Whether plans are loaded with the runtime's own operators: yes unless the environment
 /// variable `PRL_OPS` is `tract` (tract's operators alone: what the runtime's own are measured
@@ -315,147 +322,6 @@ fn past_plain_cast(model: &TypedModel, outlet: OutletId) -> TractResult<OutletId
     Ok(if copy { node.inputs[0] } else { outlet })
 }
 
-/// A zero-filled tensor of `shape` that `fill` writes an operator's output into. (tract's
-/// conversions from a `Vec` or an ndarray copy the data into a tensor of their own: one more
-/// pass over every output.)
-fn output_tensor<T: Datum>(shape: &[usize], fill: impl FnOnce(&mut [T]) -> TractResult<()>) -> TractResult<Tensor> {
-    let mut t = Tensor::zero_dt(T::datum_type(), shape)?;
-    {
-        let mut plain = t.try_as_plain_ram_mut()?;
-        fill(plain.as_slice_mut::<T>()?)?;
-    }
-    Ok(t)
-}
-
-/// As [`output_tensor`] for f32 or u8, without zeroing the tensor first (a pass over the
-/// whole output on one thread, and page faults on large ones, that a kernel writing every
-/// element does not need). In debug builds (the tests) every byte is 0xFF first, so that a
-/// value left unwritten reads as NaN (f32) or 255 (u8), not as a zero that fresh memory
-/// happens to hold.
-///
-/// # Safety
-/// `fill` writes every element of the slice it is given before the tensor is read.
-unsafe fn output_tensor_written<T: Datum + Copy>(
-    shape: &[usize],
-    fill: impl FnOnce(&mut [T]) -> TractResult<()>,
-) -> TractResult<Tensor> {
-    debug_assert!([f32::datum_type(), u8::datum_type()].contains(&T::datum_type()));
-    // SAFETY: every bit pattern is an f32 or a u8 (asserted), and the caller's `fill` writes
-    // every element.
-    let mut t = unsafe { Tensor::uninitialized_dt(T::datum_type(), shape)? };
-    {
-        let mut plain = t.try_as_plain_ram_mut()?;
-        let values = plain.as_slice_mut::<T>()?;
-        #[cfg(debug_assertions)]
-        // SAFETY: the slice's own bytes; all-ones bytes are a valid f32 (NaN) and u8 (255).
-        unsafe {
-            std::ptr::write_bytes(values.as_mut_ptr(), 0xFF, values.len())
-        };
-        fill(values)?;
-    }
-    Ok(t)
-}
-
-/// A value of four bytes for which every bit pattern is valid (the kernels' sums, the padded
-/// inputs).
-trait Word: Copy {}
-impl Word for f32 {}
-impl Word for i32 {}
-
-/// A thread's buffer kept from call to call ([`with_padded`], [`with_words`]).
-type Kept = std::thread::LocalKey<std::cell::RefCell<Vec<u32>>>;
-
-/// Run `f` on `len` values of the calling thread's buffer `kept`, which grows to the largest
-/// `len` asked for: the values are whatever its last use left. In use further up this thread's
-/// stack (not the case today), a zeroed buffer of its own.
-fn lend<T: Word, R>(kept: &'static Kept, len: usize, f: impl FnOnce(&mut [T]) -> R) -> R {
-    const { assert!(size_of::<T>() == 4 && align_of::<T>() == 4) };
-    let words = |v: &mut [u32]| {
-        // SAFETY: `T` is four bytes with no invalid bit pattern ([`Word`]: f32, i32), as
-        // aligned as u32; the values are initialised u32s, borrowed mutably here alone.
-        unsafe { std::slice::from_raw_parts_mut(v.as_mut_ptr().cast::<T>(), v.len()) }
-    };
-    kept.with(|b| match b.try_borrow_mut() {
-        Ok(mut v) => {
-            if v.len() < len {
-                v.resize(len, 0);
-            }
-            f(words(&mut v[..len]))
-        }
-        Err(_) => f(words(&mut vec![0u32; len])),
-    })
-}
-
-/// Run `f` on a buffer of `len` values whose positions `borders` lists (runs `(start, len)`)
-/// are zero and the others hold whatever the thread's last use left: the scratch of a padded
-/// input, whose interior the caller writes whole before reading it. The buffer is the calling
-/// thread's own and kept from call to call (it grows to the largest `len` asked for), so a
-/// padded plane costs neither an allocation nor the zeroing of its interior (the stem's 0.8 MB
-/// and the depthwise layers' planes were zeroed on every frame: 2% of NanoTrack's step).
-fn with_padded<R>(len: usize, borders: &[(usize, usize)], f: impl FnOnce(&mut [f32]) -> R) -> R {
-    thread_local! {
-        static PADDED: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
-    }
-    lend(&PADDED, len, |buf: &mut [f32]| {
-        for &(at, n) in borders {
-            buf[at..at + n].fill(0.0);
-        }
-        f(buf)
-    })
-}
-
-/// Run `f` on the calling thread's buffer of `len` values of four bytes, kept from call to call
-/// (it grows to the largest `len` asked for): the values are whatever its last use left, so
-/// `f` writes before it reads. The tiles' sums: an item of PRL-Track's template layer 1 took
-/// 0.67 MB of sums, allocated and zeroed for each of its two channel blocks (0.05 of 1.7 ms).
-/// A buffer of its own, not [`with_padded`]'s: the sums are made while the padded input is in
-/// use.
-fn with_words<T: Word, R>(len: usize, f: impl FnOnce(&mut [T]) -> R) -> R {
-    thread_local! {
-        static WORDS: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
-    }
-    lend(&WORDS, len, f)
-}
-
-/// Run `f` on the calling thread's buffer of `len` bytes, kept from call to call (it grows to
-/// the largest `len` asked for): the bytes are whatever its last use left, so `f` writes before
-/// it reads. The integer depthwise layers' padded planes (allocated per channel group and
-/// frame before).
-#[cfg(any(target_arch = "x86_64", target_arch = "aarch64"))]
-fn with_bytes<R>(len: usize, f: impl FnOnce(&mut [u8]) -> R) -> R {
-    thread_local! {
-        static BYTES: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
-    }
-    BYTES.with(|b| match b.try_borrow_mut() {
-        Ok(mut v) => {
-            if v.len() < len {
-                v.resize(len, 0);
-            }
-            f(&mut v[..len])
-        }
-        Err(_) => f(&mut vec![0u8; len]),
-    })
-}
-
-/// The runs `(start, len)` of a `len`-long buffer that `write` leaves as they were: what
-/// [`with_padded`] must zero for a padded input that `write` fills (found once, when an
-/// operator is made, by writing into a buffer of NaNs).
-fn unwritten_runs(len: usize, write: impl FnOnce(&mut [f32])) -> Vec<(usize, usize)> {
-    let mut buf = vec![f32::NAN; len];
-    write(&mut buf);
-    let mut runs: Vec<(usize, usize)> = vec![];
-    for (i, v) in buf.iter().enumerate() {
-        if !v.is_nan() {
-            continue;
-        }
-        match runs.last_mut() {
-            Some((at, n)) if *at + *n == i => *n += 1,
-            _ => runs.push((i, 1)),
-        }
-    }
-    runs
-}
-
 /// Whether a pooling spec's strides or dilations (absent: 1) are all 1.
 fn all_ones(v: &Option<TVec<usize>>) -> bool {
     v.as_ref().is_none_or(|v| v.iter().all(|&s| s == 1))
@@ -549,107 +415,5 @@ pub(crate) fn kernel_name(op: &str, info: &str) -> String {
             .find(|w| w.contains("_mmm_"))
             .unwrap_or("")
             .to_string(),
-    }
-}
-
-/// A pointer that threads writing disjoint elements share.
-struct SyncPtr<T>(*mut T);
-
-// SAFETY: users write disjoint elements only, and the buffer outlives the threads' work.
-unsafe impl<T> Send for SyncPtr<T> {}
-// SAFETY: as above.
-unsafe impl<T> Sync for SyncPtr<T> {}
-
-impl<T> SyncPtr<T> {
-    /// The element at `i`.
-    ///
-    /// # Safety
-    /// `i` is within the buffer, and no other thread accesses that element meanwhile.
-    unsafe fn at(&self, i: usize) -> *mut T {
-        // SAFETY: the caller keeps `i` within the buffer.
-        unsafe { self.0.add(i) }
-    }
-}
-
-/// The threads [`par_for`] and [`par_chunks`] run on (tract's executor's).
-fn threads() -> usize {
-    use tract_linalg::multithread::{current_tract_executor, Executor};
-    match current_tract_executor() {
-        Executor::SingleThread => 1,
-        Executor::MultiThread(pool) => pool.current_num_threads(),
-        Executor::RayonGlobal => rayon::current_num_threads(),
-    }
-}
-
-/// Multiply-adds under which an operator runs on the calling thread alone, even where its graph
-/// is split over threads: about 50 µs of work, of which handing it to the pool's threads costs a
-/// good part (PRL-Track's three head convolutions, 0.8 M each, took 0.045-0.064 ms on one thread
-/// and 0.053-0.076 over two).
-const SERIAL_MACS: usize = 1 << 20;
-
-/// `f` with tract's executor set to the calling thread alone where `macs` is under
-/// [`SERIAL_MACS`] (so that the operator's [`par_for`]s and [`par_chunks`] run inline), else `f`.
-fn serial_if_small<R>(macs: usize, f: impl FnOnce() -> R) -> R {
-    use tract_linalg::multithread::{multithread_tract_scope, Executor};
-    if macs < SERIAL_MACS {
-        multithread_tract_scope(Executor::SingleThread, f)
-    } else {
-        f()
-    }
-}
-
-/// Run `f(i)` for every `i < n`, on tract's thread pool when it has one.
-fn par_for(n: usize, f: impl Fn(usize) + Sync) {
-    use rayon::prelude::*;
-    use tract_linalg::multithread::{current_tract_executor, Executor};
-    match current_tract_executor() {
-        Executor::SingleThread => (0..n).for_each(f),
-        Executor::MultiThread(pool) => pool.install(|| (0..n).into_par_iter().for_each(&f)),
-        Executor::RayonGlobal => (0..n).into_par_iter().for_each(&f),
-    }
-}
-
-/// Values in one share of an element-wise operator's work handed to the pool's threads
-/// ([`par_chunks`]; [`QuantizeU8`], [`DequantizeU8`], [`BroadcastBinary`]'s whole rows): a
-/// tensor of fewer stays on the calling thread (a hand-over costs about what 30 000 elements
-/// take).
-const SHARE: usize = 1 << 15;
-
-/// Run `f(i, chunk)` on every `len`-long chunk of `out` (the last may be shorter), on tract's
-/// thread pool when it has one.
-fn par_chunks<T: Send>(out: &mut [T], len: usize, f: impl Fn(usize, &mut [T]) + Sync) {
-    use rayon::prelude::*;
-    use tract_linalg::multithread::{current_tract_executor, Executor};
-    let chunks = out.par_chunks_mut(len).enumerate();
-    match current_tract_executor() {
-        Executor::SingleThread => out.chunks_mut(len).enumerate().for_each(|(i, c)| f(i, c)),
-        Executor::MultiThread(pool) => pool.install(|| chunks.for_each(|(i, c)| f(i, c))),
-        Executor::RayonGlobal => chunks.for_each(|(i, c)| f(i, c)),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_thread_s_padded_buffer_has_zero_borders_whatever_it_held() {
-        // A plane padded for a 3x3 stride-2 convolution: what its padding leaves unwritten.
-        let s = ConvShape { ci: 1, h: 5, w: 7, co: 1, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 2 };
-        let (hq, wq) = s.phase();
-        let len = 4 * hq * wq + 3;
-        let borders = unwritten_runs(len, |b| s.pad_plane(&[0.0; 35], b));
-        let unwritten: usize = borders.iter().map(|r| r.1).sum();
-        assert_eq!(unwritten, len - 35, "35 values written, the rest padding and slack");
-        // Dirty the buffer (a larger one first), then take it back with those borders.
-        with_padded(2 * len, &[], |b| b.fill(f32::NAN));
-        let src: Vec<f32> = (1..=35).map(|v| v as f32).collect();
-        let got = with_padded(len, &borders, |b| {
-            s.pad_plane(&src, b);
-            b.to_vec()
-        });
-        let mut want = vec![0.0; len];
-        s.pad_plane(&src, &mut want);
-        assert_eq!(got, want);
     }
 }
