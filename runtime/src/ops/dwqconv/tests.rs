@@ -1,5 +1,5 @@
-//! [`super::DepthwiseQConv`] against tract's integer convolution (every kernel path, the hard-swish table before it, the
-//! dequantisation after it, per-channel scales).
+//! [`super::DepthwiseQConv`] against tract's integer convolution: every kernel path, the
+//! hard-swish table before it, the dequantisation after it, per-channel scales.
 
 use super::*;
 

@@ -1,4 +1,5 @@
-//! [`super::WinogradConv`] against the direct convolution, its kernel transform, and the forms' exactness.
+//! [`super::WinogradConv`] against the direct convolution, its kernel transform, and the
+//! forms' exactness.
 
 use super::*;
 use crate::ops::conv::direct;
