@@ -11,14 +11,11 @@ struct Taps {
 }
 
 impl Taps {
-    /// Per value of an interleaved row of `channels` channels (column, channel): its two source
-    /// offsets within the source row and their weights.
-    fn per_value(&self, channels: usize) -> (Vec<[usize; 2]>, Vec<[i32; 2]>) {
-        let value = move |(i, w): (&[usize; 2], &[i32; 2])| {
-            let (i, w) = (*i, *w);
-            (0..channels).map(move |c| ([i[0] * channels + c, i[1] * channels + c], w))
-        };
-        self.idx.iter().zip(&self.w).flat_map(value).unzip()
+    /// Per destination pixel of an interleaved row of `channels` channels: the offsets of its
+    /// two source pixels' first channel within the source row, and their weights (one entry a
+    /// pixel, not a value: a table a third as long for BGR rows).
+    fn per_pixel(&self, channels: usize) -> (Vec<[usize; 2]>, Vec<[i32; 2]>) {
+        (self.idx.iter().map(|i| i.map(|i| i * channels)).collect(), self.w.clone())
     }
 }
 
@@ -77,12 +74,12 @@ pub fn resize_linear_u8_rows(
     let tx = taps(sw, dw, true);
     let ty = taps(sh, dh, false);
     let row_len = dw * channels;
-    let (offs, ws) = tx.per_value(channels);
+    let (offs, ws) = tx.per_pixel(channels);
     let mut src_row = vec![0u8; sw * channels];
     // Horizontal pass for one source row, cached since consecutive output rows share rows.
     let mut hrow = |y: usize, out: &mut [i32]| {
         fill_row(y, &mut src_row);
-        passes::horizontal(&src_row, &offs, &ws, out);
+        passes::horizontal(&src_row, channels, &offs, &ws, out);
     };
     let mut cache: [(usize, Vec<i32>); 2] = [(usize::MAX, vec![0; row_len]), (usize::MAX, vec![0; row_len])];
     let mut out = vec![0u8; dh * row_len];
@@ -112,16 +109,16 @@ mod passes {
     #[cfg(target_arch = "x86_64")]
     use crate::isa::F32Kernel;
 
-    /// `out[i] = row[offs[i][0]]·ws[i][0] + row[offs[i][1]]·ws[i][1]`.
-    pub(super) fn horizontal(row: &[u8], offs: &[[usize; 2]], ws: &[[i32; 2]], out: &mut [i32]) {
+    /// `out[i·channels + c] = row[offs[i][0] + c]·ws[i][0] + row[offs[i][1] + c]·ws[i][1]`.
+    pub(super) fn horizontal(row: &[u8], channels: usize, offs: &[[usize; 2]], ws: &[[i32; 2]], out: &mut [i32]) {
         match crate::isa::f32_kernel() {
             // SAFETY: the CPU has AVX-512F, AVX2 and FMA (the table's needs).
             #[cfg(target_arch = "x86_64")]
-            F32Kernel::Avx512 => unsafe { horizontal_avx512(row, offs, ws, out) },
+            F32Kernel::Avx512 => unsafe { horizontal_avx512(row, channels, offs, ws, out) },
             // SAFETY: the CPU has AVX2 and FMA (the table's needs).
             #[cfg(target_arch = "x86_64")]
-            F32Kernel::Avx2Fma => unsafe { horizontal_avx2(row, offs, ws, out) },
-            _ => horizontal_generic(row, offs, ws, out),
+            F32Kernel::Avx2Fma => unsafe { horizontal_avx2(row, channels, offs, ws, out) },
+            _ => horizontal_generic(row, channels, offs, ws, out),
         }
     }
 
@@ -140,20 +137,62 @@ mod passes {
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx2,fma")]
-    pub(super) unsafe fn horizontal_avx512(row: &[u8], offs: &[[usize; 2]], ws: &[[i32; 2]], out: &mut [i32]) {
-        horizontal_generic(row, offs, ws, out)
+    pub(super) unsafe fn horizontal_avx512(
+        row: &[u8],
+        channels: usize,
+        offs: &[[usize; 2]],
+        ws: &[[i32; 2]],
+        out: &mut [i32],
+    ) {
+        horizontal_generic(row, channels, offs, ws, out)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn horizontal_avx2(row: &[u8], offs: &[[usize; 2]], ws: &[[i32; 2]], out: &mut [i32]) {
-        horizontal_generic(row, offs, ws, out)
+    pub(super) unsafe fn horizontal_avx2(
+        row: &[u8],
+        channels: usize,
+        offs: &[[usize; 2]],
+        ws: &[[i32; 2]],
+        out: &mut [i32],
+    ) {
+        horizontal_generic(row, channels, offs, ws, out)
     }
 
+    /// [`horizontal`]'s loop, a pixel at a time, BGR and grey rows with their channel count
+    /// known to the compiler (a table entry a value before: the pass took 20% less time in
+    /// NanoTrack's search crop on a Zen 3, about 0.24 -> 0.19 ms, three alternated `perf` runs).
     #[inline(always)]
-    pub(super) fn horizontal_generic(row: &[u8], offs: &[[usize; 2]], ws: &[[i32; 2]], out: &mut [i32]) {
-        for ((o, off), w) in out.iter_mut().zip(offs).zip(ws) {
-            *o = row[off[0]] as i32 * w[0] + row[off[1]] as i32 * w[1];
+    pub(super) fn horizontal_generic(
+        row: &[u8],
+        channels: usize,
+        offs: &[[usize; 2]],
+        ws: &[[i32; 2]],
+        out: &mut [i32],
+    ) {
+        match channels {
+            0 => {}
+            1 => pixels::<1>(row, offs, ws, out),
+            3 => pixels::<3>(row, offs, ws, out),
+            c => {
+                for ((o, off), w) in out.chunks_exact_mut(c).zip(offs).zip(ws) {
+                    for (k, o) in o.iter_mut().enumerate() {
+                        *o = row[off[0] + k] as i32 * w[0] + row[off[1] + k] as i32 * w[1];
+                    }
+                }
+            }
+        }
+    }
+
+    /// [`horizontal_generic`] for rows of `C` channels.
+    #[inline(always)]
+    fn pixels<const C: usize>(row: &[u8], offs: &[[usize; 2]], ws: &[[i32; 2]], out: &mut [i32]) {
+        for ((o, off), w) in out.chunks_exact_mut(C).zip(offs).zip(ws) {
+            let a: &[u8; C] = row[off[0]..off[0] + C].try_into().expect("C values");
+            let b: &[u8; C] = row[off[1]..off[1] + C].try_into().expect("C values");
+            for k in 0..C {
+                o[k] = a[k] as i32 * w[0] + b[k] as i32 * w[1];
+            }
         }
     }
 
@@ -225,9 +264,15 @@ mod tests {
 
     #[test]
     fn equals_the_straightforward_form() {
-        for (sw, sh, c, dw, dh) in
-            [(300, 290, 3, 255, 255), (611, 589, 3, 127, 127), (97, 53, 3, 287, 287), (40, 30, 1, 17, 61)]
-        {
+        // BGR and grey rows (their own loops) and 4 and 2 channels (the loop for any count).
+        for (sw, sh, c, dw, dh) in [
+            (300, 290, 3, 255, 255),
+            (611, 589, 3, 127, 127),
+            (97, 53, 3, 287, 287),
+            (40, 30, 1, 17, 61),
+            (23, 19, 4, 31, 7),
+            (5, 5, 2, 9, 3),
+        ] {
             let src: Vec<u8> = (0..sw * sh * c).map(|i| ((i * 7919 + i / 13) % 256) as u8).collect();
             assert_eq!(
                 resize_linear_u8(&src, sw, sh, c, dw, dh),
@@ -253,20 +298,20 @@ mod tests {
     #[test]
     fn every_form_of_the_passes_equals_the_portable_one() {
         let row: Vec<u8> = (0..3 * 611).map(|i| ((i * 7919 + i / 13) % 256) as u8).collect();
-        let (offs, ws) = taps(611, 255, true).per_value(3);
-        let mut want_h = vec![0i32; offs.len()];
-        passes::horizontal_generic(&row, &offs, &ws, &mut want_h);
+        let (offs, ws) = taps(611, 255, true).per_pixel(3);
+        let mut want_h = vec![0i32; 3 * offs.len()];
+        passes::horizontal_generic(&row, 3, &offs, &ws, &mut want_h);
         let r1: Vec<i32> = want_h.iter().rev().copied().collect();
         let mut want_v = vec![0u8; want_h.len()];
         passes::vertical_generic(&want_h, &r1, [1500, 548], &mut want_v);
         let mut forms: Vec<(&str, Vec<i32>, Vec<u8>)> = vec![];
         let (mut h, mut v) = (vec![0i32; want_h.len()], vec![0u8; want_v.len()]);
-        passes::horizontal(&row, &offs, &ws, &mut h);
+        passes::horizontal(&row, 3, &offs, &ws, &mut h);
         passes::vertical(&want_h, &r1, [1500, 548], &mut v);
         forms.push(("dispatched", h, v));
         #[cfg(target_arch = "x86_64")]
         {
-            type Horizontal = unsafe fn(&[u8], &[[usize; 2]], &[[i32; 2]], &mut [i32]);
+            type Horizontal = unsafe fn(&[u8], usize, &[[usize; 2]], &[[i32; 2]], &mut [i32]);
             type Vertical = unsafe fn(&[i32], &[i32], [i32; 2], &mut [u8]);
             let isa = crate::isa::isa();
             let compiled: [(&str, bool, Horizontal, Vertical); 2] = [
@@ -281,7 +326,7 @@ mod tests {
                 let (mut h, mut v) = (vec![0i32; want_h.len()], vec![0u8; want_v.len()]);
                 // SAFETY: the CPU has the form's instruction sets (checked just above).
                 unsafe {
-                    horizontal(&row, &offs, &ws, &mut h);
+                    horizontal(&row, 3, &offs, &ws, &mut h);
                     vertical(&want_h, &r1, [1500, 548], &mut v);
                 }
                 forms.push((name, h, v));
