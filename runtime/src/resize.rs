@@ -12,10 +12,10 @@ struct Taps {
 
 impl Taps {
     /// Per destination pixel of an interleaved row of `channels` channels: the offsets of its
-    /// two source pixels' first channel within the source row, and their weights (one entry a
-    /// pixel, not a value: a table a third as long for BGR rows).
-    fn per_pixel(&self, channels: usize) -> (Vec<[usize; 2]>, Vec<[i32; 2]>) {
-        (self.idx.iter().map(|i| i.map(|i| i * channels)).collect(), self.w.clone())
+    /// two source pixels' first channel within the source row (one entry a pixel, not a value:
+    /// a table a third as long for BGR rows; the weights are [`Taps::w`] as they are).
+    fn pixel_offsets(&self, channels: usize) -> Vec<[usize; 2]> {
+        self.idx.iter().map(|i| i.map(|i| i * channels)).collect()
     }
 }
 
@@ -74,12 +74,12 @@ pub fn resize_linear_u8_rows(
     let tx = taps(sw, dw, true);
     let ty = taps(sh, dh, false);
     let row_len = dw * channels;
-    let (offs, ws) = tx.per_pixel(channels);
+    let (offs, ws) = (tx.pixel_offsets(channels), &tx.w);
     let mut src_row = vec![0u8; sw * channels];
     // Horizontal pass for one source row, cached since consecutive output rows share rows.
     let mut hrow = |y: usize, out: &mut [i32]| {
         fill_row(y, &mut src_row);
-        passes::horizontal(&src_row, channels, &offs, &ws, out);
+        passes::horizontal(&src_row, channels, &offs, ws, out);
     };
     let mut cache: [(usize, Vec<i32>); 2] = [(usize::MAX, vec![0; row_len]), (usize::MAX, vec![0; row_len])];
     let mut out = vec![0u8; dh * row_len];
@@ -298,15 +298,16 @@ mod tests {
     #[test]
     fn every_form_of_the_passes_equals_the_portable_one() {
         let row: Vec<u8> = (0..3 * 611).map(|i| ((i * 7919 + i / 13) % 256) as u8).collect();
-        let (offs, ws) = taps(611, 255, true).per_pixel(3);
+        let tx = taps(611, 255, true);
+        let (offs, ws) = (tx.pixel_offsets(3), &tx.w);
         let mut want_h = vec![0i32; 3 * offs.len()];
-        passes::horizontal_generic(&row, 3, &offs, &ws, &mut want_h);
+        passes::horizontal_generic(&row, 3, &offs, ws, &mut want_h);
         let r1: Vec<i32> = want_h.iter().rev().copied().collect();
         let mut want_v = vec![0u8; want_h.len()];
         passes::vertical_generic(&want_h, &r1, [1500, 548], &mut want_v);
         let mut forms: Vec<(&str, Vec<i32>, Vec<u8>)> = vec![];
         let (mut h, mut v) = (vec![0i32; want_h.len()], vec![0u8; want_v.len()]);
-        passes::horizontal(&row, 3, &offs, &ws, &mut h);
+        passes::horizontal(&row, 3, &offs, ws, &mut h);
         passes::vertical(&want_h, &r1, [1500, 548], &mut v);
         forms.push(("dispatched", h, v));
         #[cfg(target_arch = "x86_64")]
@@ -326,7 +327,7 @@ mod tests {
                 let (mut h, mut v) = (vec![0i32; want_h.len()], vec![0u8; want_v.len()]);
                 // SAFETY: the CPU has the form's instruction sets (checked just above).
                 unsafe {
-                    horizontal(&row, 3, &offs, &ws, &mut h);
+                    horizontal(&row, 3, &offs, ws, &mut h);
                     vertical(&want_h, &r1, [1500, 548], &mut v);
                 }
                 forms.push((name, h, v));
