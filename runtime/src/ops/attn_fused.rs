@@ -17,6 +17,7 @@ use tract_nnef::tract_core::ops::nn::{Softmax, SoftmaxKind};
 
 use super::act::{other_const, sole_consumer};
 use super::attention::{gemm, keys_transposed, values_rows, View, MR, NR};
+use super::par::parts;
 use super::permute::Permute;
 use super::softmax::softmax_row;
 use super::{output_tensor_written, par_for, threads, SyncPtr};
@@ -96,8 +97,8 @@ impl EvalOp for Attention {
         // Key rows and value rows padded to whole vectors of 16.
         let (ldk, ldv) = (row.next_multiple_of(NR), n.next_multiple_of(NR));
         // Each head whole when there are at least twice as many heads as threads; else its rows
-        // in parts, so that every thread has work.
-        let parts = (2 * threads()).div_ceil(heads.max(1)).clamp(1, m.div_ceil(MR).max(1));
+        // in parts, so that every thread has work ([`parts`]).
+        let parts = parts(heads, 2 * threads(), m.div_ceil(MR));
         let per_part = m.div_ceil(parts).next_multiple_of(MR);
         let fill = |out: &mut [f32]| {
             let dst = SyncPtr(out.as_mut_ptr());

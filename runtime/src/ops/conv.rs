@@ -17,6 +17,8 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
 use super::conv_lanes::LanePack;
+use super::par::{par_for, parts, SyncPtr};
+use super::scratch::lend;
 use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits, serial_if_small};
 
 mod shape;
@@ -128,6 +130,48 @@ impl PackedConv {
     pub fn shape(&self) -> &ConvShape {
         &self.shape
     }
+
+    /// Channel block `b`'s packed weights and bias.
+    fn block(&self, b: usize) -> (&[f32], &[f32; ROWS]) {
+        let taps = self.layout.taps.len();
+        let bias = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
+        (&self.weights[b * taps * ROWS..(b + 1) * taps * ROWS], bias)
+    }
+
+    /// [`channel_block`] over every channel block with its output rows cut in `parts` runs, on
+    /// tract's threads, where whole blocks would leave threads idle ([`parts`]). A run's rows
+    /// are those of a layout that starts at its first row (the padded input read from that row
+    /// on), summed into the thread's buffer and copied into the block's planes. A position's
+    /// sum does not depend on the tile it falls in, so the outputs are those of whole blocks,
+    /// bit for bit.
+    fn blocks_in_parts(&self, padded: &[f32], parts: usize, out: &mut [f32]) {
+        thread_local! {
+            static RUN: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        let Layout { wp, oh, ow, .. } = *self.layout;
+        let (co, plane, per) = (self.shape.co, oh * ow, oh.div_ceil(parts));
+        assert_eq!(out.len(), co * plane);
+        let dst = SyncPtr(out.as_mut_ptr());
+        par_for(co.div_ceil(ROWS) * parts, |item| {
+            let (b, y0) = (item / parts, item % parts * per);
+            let (rows, y1) = (ROWS.min(co - b * ROWS), (y0 + per).min(oh));
+            if y0 >= y1 {
+                return;
+            }
+            let run = Layout { taps: self.layout.taps.clone(), wp, oh: y1 - y0, ow };
+            let n = (y1 - y0) * ow;
+            let (weights, bias) = self.block(b);
+            lend(&RUN, rows * n, |sums: &mut [f32]| {
+                channel_block(&run, &padded[y0 * wp..], weights, bias, self.act, sums);
+                for (r, sums) in sums.chunks_exact(n).enumerate() {
+                    // SAFETY: rows `y0 .. y1` of channel `b·ROWS + r < co`'s plane, within `out`
+                    // (asserted); no other item writes them.
+                    let d = unsafe { std::slice::from_raw_parts_mut(dst.at((b * ROWS + r) * plane + y0 * ow), n) };
+                    d.copy_from_slice(sums);
+                }
+            });
+        });
+    }
 }
 
 impl Op for PackedConv {
@@ -168,7 +212,6 @@ impl EvalOp for PackedConv {
         let (oh, ow) = s.out();
         let (hq, wq) = s.phase();
         let plane = oh * ow;
-        let taps = self.layout.taps.len();
         let phases = s.stride * s.stride;
         let fill = |out: &mut [f32]| {
             super::with_padded(Self::padded_len(s), &self.borders, |padded| {
@@ -190,9 +233,13 @@ impl EvalOp for PackedConv {
                         }
                         None => {}
                     }
+                    let parts = parts(s.co.div_ceil(ROWS), 1, oh);
+                    if parts > 1 {
+                        self.blocks_in_parts(padded, parts, dst);
+                        continue;
+                    }
                     par_chunks(dst, ROWS * plane, |b, out| {
-                        let weights = &self.weights[b * taps * ROWS..(b + 1) * taps * ROWS];
-                        let bias: &[f32; ROWS] = self.bias[b * ROWS..(b + 1) * ROWS].try_into().expect("ROWS values");
+                        let (weights, bias) = self.block(b);
                         channel_block(&self.layout, padded, weights, bias, self.act, out);
                     });
                 }

@@ -354,12 +354,12 @@ unsafe fn store_sums(
 
 /// Run `f(block, first tile, tiles)` over `blocks` channel blocks of `tiles` tiles each on
 /// tract's threads: each block whole, or, on several threads where there are fewer than 12
-/// blocks, in runs of tiles, so that every thread has work.
+/// blocks or they would leave threads idle ([`super::par::parts`]), in runs of tiles, so that
+/// every thread has work.
 pub(super) fn for_each_item(blocks: usize, tiles: usize, f: impl Fn(usize, usize, usize) + Sync) {
     // One thread: each block whole (its weights read once; split in two, the second half
     // read them again from L3 in a graph: PRL-Track's template layer 4 and zf5 5-15% slower).
-    let items: usize = if super::threads() > 1 { 12 } else { 1 };
-    let parts = items.div_ceil(blocks).clamp(1, tiles.max(1));
+    let parts = super::par::parts(blocks, 12, tiles);
     let per_part = tiles.div_ceil(parts);
     par_for(blocks * parts, |item| {
         let first = (item % parts) * per_part;

@@ -127,3 +127,39 @@ fn equals_the_direct_sum_with_padding_and_a_partial_channel_block() {
         }
     }
 }
+
+/// Over pools of 2, 3 and 8 threads, where few channel blocks are cut in runs of output rows
+/// (or of tiles, [`super::super::par::parts`]), the outputs are those of one thread, bit for
+/// bit: backbone layer 1's form (12 blocks of 8 channels, 8 threads), one block (2 threads),
+/// three (2 and 8), stride 1 and 2, runs of one row.
+#[test]
+fn runs_of_rows_over_threads_give_one_thread_s_outputs() {
+    use tract_linalg::multithread::{multithread_tract_scope, Executor};
+    for s in [
+        ConvShape { ci: 3, h: 35, w: 33, co: 96, kh: 11, kw: 11, pad: [0; 4], stride: 2 },
+        ConvShape { ci: 4, h: 9, w: 30, co: 8, kh: 3, kw: 3, pad: [1, 1, 1, 1], stride: 1 },
+        ConvShape { ci: 5, h: 20, w: 17, co: 24, kh: 3, kw: 3, pad: [1, 0, 1, 2], stride: 2 },
+        ConvShape { ci: 2, h: 4, w: 9, co: 3, kh: 3, kw: 3, pad: [0; 4], stride: 1 },
+    ] {
+        let taps = s.ci * s.kh * s.kw;
+        let input: Vec<f32> = (0..s.ci * s.h * s.w).map(|i| ((i * 7919 % 1000) as f32) / 500.0 - 1.0).collect();
+        let weight: Vec<f32> = (0..s.co * taps).map(|i| ((i * 104729 % 997) as f32) / 498.0 - 1.0).collect();
+        let bias: Vec<f32> = (0..s.co).map(|o| o as f32 / 4.0).collect();
+        let op = PackedConv::new(s.clone(), &weight, &bias).unwrap();
+        let x = tract_ndarray::Array4::from_shape_vec((1, s.ci, s.h, s.w), input.clone()).unwrap().into_tensor();
+        let run = |e: Executor| {
+            let out =
+                multithread_tract_scope(e, || op.eval(&EvalContext::out_of_plan(), tvec![x.clone().into_tvalue()]));
+            out.unwrap()[0].try_as_plain_ram().unwrap().as_slice::<f32>().unwrap().to_vec()
+        };
+        let one = run(Executor::SingleThread);
+        let want = direct(&s, 1, &input, &weight, &bias);
+        let worst = one.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "{s:?}: off by {worst}");
+        for threads in [2, 3, 8] {
+            let got = run(Executor::multithread(threads));
+            let same = got.iter().zip(&one).all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "{s:?}: {threads} threads give other outputs than one");
+        }
+    }
+}

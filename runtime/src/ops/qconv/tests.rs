@@ -163,8 +163,11 @@ fn check(s: ConvShape) {
 }
 
 /// Every path of the op made for `s` (AMX where the CPU has it; VNNI, AVX2 or SDOT words;
-/// channels in lanes where packed) gives `want` on the images `input`.
+/// channels in lanes where packed) gives `want` on the images `input`, on the calling thread
+/// and over a pool of eight (the Orin's cores: few channel blocks are cut in runs of rows or
+/// tiles, [`super::super::par::parts`]).
 fn every_path(s: &ConvShape, input: &[u8], kernel: &[i8], bias: &[i32], q: QuantParams, want: &[u8]) {
+    use tract_linalg::multithread::{multithread_tract_scope, Executor};
     let amx = PackedQConv::new(s.clone(), kernel, bias, q, u8::datum_type()).unwrap();
     let vnni = PackedQConv { amx: None, ..amx.clone() };
     // The positions-in-lanes tiles too, where the channels-in-lanes ones were packed.
@@ -177,12 +180,17 @@ fn every_path(s: &ConvShape, input: &[u8], kernel: &[i8], bias: &[i32], q: Quant
         _ => "VNNI",
     };
     let lanes = if vnni.lanes.is_some() { "VNNI in lanes" } else { words };
-    for (op, isa) in [(&amx, if amx.amx.is_some() { "AMX" } else { lanes }), (&vnni, lanes), (&rows, words)] {
-        let out = op.eval(&EvalContext::out_of_plan(), tvec![x.clone().into_tvalue()]).unwrap();
-        let out = out[0].try_as_plain_ram().unwrap();
-        let got = out.as_slice::<u8>().unwrap();
-        if let Some(i) = (0..want.len()).find(|&i| got[i] != want[i]) {
-            panic!("{isa}, {s:?}: output {i} is {} instead of {}", got[i], want[i]);
+    let ops = [(&amx, if amx.amx.is_some() { "AMX" } else { lanes }), (&vnni, lanes), (&rows, words)];
+    for (threads, e) in [(1, Executor::SingleThread), (8, Executor::multithread(8))] {
+        for (op, isa) in ops {
+            let out = multithread_tract_scope(e.clone(), || {
+                op.eval(&EvalContext::out_of_plan(), tvec![x.clone().into_tvalue()]).unwrap()
+            });
+            let out = out[0].try_as_plain_ram().unwrap();
+            let got = out.as_slice::<u8>().unwrap();
+            if let Some(i) = (0..want.len()).find(|&i| got[i] != want[i]) {
+                panic!("{isa}, {threads} threads, {s:?}: output {i} is {} instead of {}", got[i], want[i]);
+            }
         }
     }
 }

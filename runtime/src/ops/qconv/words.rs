@@ -4,14 +4,13 @@
 //! the sums requantised; and the byte-layout helpers that copy: rows of channels into words,
 //! four planes interleaved, the output transposed to positions first.
 
+use super::super::par::parts;
 #[cfg(target_arch = "aarch64")]
 use super::super::qconv_kernel::tiles_sdot;
 use super::super::qconv_kernel::{bytemuck_words, tiles_avx2, tiles_vnni};
 #[cfg(target_arch = "x86_64")]
 use super::super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant, Planes};
-use super::super::{par_chunks, with_words};
-#[cfg(target_arch = "x86_64")]
-use super::super::{par_for, SyncPtr};
+use super::super::{par_chunks, par_for, with_words, SyncPtr};
 use super::{PackedQConv, WordsPath, PX, ROWS};
 
 impl PackedQConv {
@@ -30,7 +29,6 @@ impl PackedQConv {
         let (hq, wq) = s.phase();
         let (oh, ow) = s.out();
         let plane = oh * ow;
-        let positions = self.layout.positions();
         // Words of four channels, each group's plane stored as its `stride²` phases
         // ([`ConvShape::phase`]); room past the end for the last tile.
         let group_words = s.stride * s.stride * hq * wq;
@@ -91,6 +89,7 @@ impl PackedQConv {
             // A 1x1 layer of stride 1: each tile of positions is consecutive outputs,
             // requantised in the tile's registers (VNNI's tiles of 32 positions, AVX2's of 8).
             let per_block = taps.len() * ROWS;
+            let positions = self.layout.positions();
             // Channel block `b`'s `rows` channels from `out`, in planes or positions first.
             let block = |b: usize, out: *mut u8, rows: usize, positions_first: Option<usize>| {
                 let channels = b * ROWS..(b + 1) * ROWS;
@@ -144,13 +143,31 @@ impl PackedQConv {
             lanes.run(&self.layout, words, self.y0, dst);
             return;
         }
-        par_chunks(dst, ROWS * plane, |b, out| {
+        // Each channel block whole, or, where whole blocks would leave threads idle, its output
+        // rows in runs ([`parts`]): a run's positions start at its first row, and its sums (exact
+        // integers) are those of the whole block's.
+        assert_eq!(dst.len(), s.co * plane);
+        let parts = parts(s.co.div_ceil(ROWS), 1, oh);
+        let per = oh.div_ceil(parts);
+        let out = SyncPtr(dst.as_mut_ptr());
+        par_for(s.co.div_ceil(ROWS) * parts, |item| {
+            let (b, y0) = (item / parts, item % parts * per);
+            let (rows, y1) = (ROWS.min(s.co - b * ROWS), (y0 + per).min(oh));
+            if y0 >= y1 {
+                return;
+            }
+            let (n, positions) = ((y1 - y0) * ow, (y1 - y0 - 1) * wq + ow);
+            let words = &words[y0 * wq..];
+            // SAFETY: rows `y0 .. y1` of channel `b·ROWS + r < co`'s plane, within `dst`
+            // (asserted); no other item writes them.
+            let channel =
+                |r: usize| unsafe { std::slice::from_raw_parts_mut(out.at((b * ROWS + r) * plane + y0 * ow), n) };
             // Every tile's sums are written before they are read: the thread's buffer.
             with_words(positions.div_ceil(PX) * PX * ROWS, |sums: &mut [i32]| {
                 let weights = &self.weights[b * taps.len() * ROWS..(b + 1) * taps.len() * ROWS];
                 match path {
                     // SAFETY: the path is one the CPU has ([`words_path`]); every tile of every tap
-                    // lies in `words` (padded by `PX + wp` words).
+                    // lies in `words` (padded by `PX + wp` words past the last row's positions).
                     WordsPath::Vnni => unsafe { tiles_vnni(words, taps, weights, positions, sums) },
                     WordsPath::Avx2 => {
                         let pairs = self.pairs.as_deref().expect("the AVX2 path's pairs are packed with the op");
@@ -168,18 +185,18 @@ impl PackedQConv {
                     // No wide columns (a 1x1 layer without padding): each tile's row of sums is
                     // `PX` consecutive outputs, requantised where it lies (a gather value by value
                     // cost as much as the products on AVX2).
-                    for (r, out) in out.chunks_exact_mut(plane).enumerate() {
-                        for (tile, out) in out.chunks_mut(PX).enumerate() {
+                    for r in 0..rows {
+                        for (tile, out) in channel(r).chunks_mut(PX).enumerate() {
                             let at = tile * PX * ROWS + r * PX;
                             requant(b * ROWS + r, &sums[at..at + out.len()], out);
                         }
                     }
                     return;
                 }
-                // Each channel's plane gathered whole, then requantised in one pass (row by row, a
+                // Each channel's rows gathered whole, then requantised in one pass (row by row, a
                 // map 26 wide left 10 of every 26 values to the scalar remainder).
-                let mut gathered = vec![0i32; plane];
-                for (r, out) in out.chunks_exact_mut(plane).enumerate() {
+                let mut gathered = vec![0i32; n];
+                for r in 0..rows {
                     for (y, row) in gathered.chunks_exact_mut(ow).enumerate() {
                         // The row's positions `y·wq ..` by the runs that lie in one tile (value by
                         // value, the gather took 7 of a 187 ms int8 step on a modelled A78).
@@ -192,7 +209,7 @@ impl PackedQConv {
                             x += n;
                         }
                     }
-                    requant(b * ROWS + r, &gathered, out);
+                    requant(b * ROWS + r, &gathered, channel(r));
                 }
             })
         });
