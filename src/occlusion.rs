@@ -150,9 +150,7 @@ impl LostAndFound {
             let (frame, b) = self.make_frame(i, &src, gt[i]);
             let name = img.join(format!("{:06}.png", i + 1));
             let tmp = img.join(format!(".{:06}.png.tmp", i + 1));
-            let rgb: Vec<u8> = frame.bgr().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
-            let image = image::RgbImage::from_raw(frame.width() as u32, frame.height() as u32, rgb)
-                .expect("the buffer matches the frame's size");
+            let image = frame.to_rgb_image();
             image.save_with_format(&tmp, image::ImageFormat::Png).map_err(|e| werr(&tmp, &e))?;
             std::fs::rename(&tmp, &name).map_err(|e| werr(&name, &e))?;
             text.push_str(&if b[0].is_nan() {

@@ -20,10 +20,14 @@ pub struct Frame {
     bgr: Vec<u8>,
 }
 
-/// That `len` bytes are exactly a `width` x `height` BGR frame, not empty.
+/// That `len` bytes are exactly a `width` x `height` BGR frame, not empty, its sides within
+/// u32 (an image's).
 fn check_size(width: usize, height: usize, len: usize) -> Result<()> {
     if width == 0 || height == 0 {
         return Err(Error::Input(format!("empty frame ({width}x{height})")));
+    }
+    if u32::try_from(width).is_err() || u32::try_from(height).is_err() {
+        return Err(Error::Input(format!("a {width}x{height} frame: sides over {}", u32::MAX)));
     }
     let need = width.checked_mul(height).and_then(|n| n.checked_mul(3));
     if need != Some(len) {
@@ -33,13 +37,18 @@ fn check_size(width: usize, height: usize, len: usize) -> Result<()> {
     Ok(())
 }
 
+/// Interleaved pixels of three bytes with the first and third swapped (BGR <-> RGB).
+fn swap_red_blue(data: &[u8]) -> Vec<u8> {
+    data.chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect()
+}
+
 impl Frame {
     /// A frame from a raw interleaved buffer of `width * height * 3` bytes in `layout`.
     pub fn from_raw(width: usize, height: usize, data: &[u8], layout: PixelLayout) -> Result<Self> {
         check_size(width, height, data.len())?;
         let bgr = match layout {
             PixelLayout::Bgr => data.to_vec(),
-            PixelLayout::Rgb => data.chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect(),
+            PixelLayout::Rgb => swap_red_blue(data),
         };
         Ok(Frame { width, height, bgr })
     }
@@ -53,8 +62,15 @@ impl Frame {
 
     /// A frame from an RGB image of the `image` crate.
     pub fn from_rgb_image(img: &image::RgbImage) -> Self {
-        let bgr = img.as_raw().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
-        Frame { width: img.width() as usize, height: img.height() as usize, bgr }
+        Frame { width: img.width() as usize, height: img.height() as usize, bgr: swap_red_blue(img.as_raw()) }
+    }
+
+    /// The frame as an RGB image of the `image` crate (to draw on or save).
+    pub fn to_rgb_image(&self) -> image::RgbImage {
+        let (w, h) = (self.width as u32, self.height as u32);
+        // A frame's sides fit in u32 and its buffer is `width · height · 3` bytes
+        // ([`check_size`] where it is made), so the image takes it.
+        image::RgbImage::from_raw(w, h, swap_red_blue(&self.bgr)).expect("a frame's buffer fits its size")
     }
 
     /// Width in pixels.
@@ -160,5 +176,19 @@ mod tests {
         assert_eq!(channel_sums(&full), plain(&full));
         let f = Frame::from_bgr(2, 1, vec![1, 2, 3, 4, 5, 6]).unwrap();
         assert_eq!(f.channel_mean(), [2.5, 3.5, 4.5]);
+    }
+
+    #[test]
+    fn rgb_images_round_trip_and_sizes_are_checked() {
+        let f = Frame::from_bgr(2, 1, vec![1, 2, 3, 4, 5, 6]).unwrap();
+        let img = f.to_rgb_image();
+        assert_eq!((img.width(), img.height(), img.as_raw().as_slice()), (2, 1, &[3u8, 2, 1, 6, 5, 4][..]));
+        assert_eq!(Frame::from_rgb_image(&img), f);
+        assert_eq!(Frame::from_raw(2, 1, img.as_raw(), PixelLayout::Rgb).unwrap(), f);
+        assert!(Frame::from_bgr(2, 1, vec![0; 5]).is_err());
+        assert!(Frame::from_bgr(0, 1, vec![]).is_err());
+        let wide = u32::MAX as usize + 1;
+        let err = check_size(wide, 1, wide * 3).unwrap_err().to_string();
+        assert!(err.contains("sides over"), "{err}");
     }
 }

@@ -273,8 +273,7 @@ fn targets_with_progress<F: Frames + Send>(
 /// The frame as an RGB image with the ground-truth boxes `gt` (red, where known) and every box of
 /// `preds` (green) drawn.
 fn with_boxes(f: &Frame, preds: &[Prediction], gt: &[[f64; 4]]) -> image::RgbImage {
-    let rgb: Vec<u8> = f.bgr().chunks_exact(3).flat_map(|p| [p[2], p[1], p[0]]).collect();
-    let mut img = image::RgbImage::from_raw(f.width() as u32, f.height() as u32, rgb).expect("frame size");
+    let mut img = f.to_rgb_image();
     for g in gt.iter().filter(|g| g.iter().all(|v| v.is_finite())) {
         draw_rect(&mut img, *g, [255, 40, 40]);
     }
