@@ -37,6 +37,7 @@ impl PackedQConv {
         let flip4 = u32::from_ne_bytes([flip; 4]);
         let mut words = vec![u32::from_ne_bytes([self.x0 ^ flip; 4]); s.ci.div_ceil(4) * group_words + PX + wq];
         // Each group of four channels fills its own words, the groups side by side on the threads.
+        let row_parts = parts(s.ci.div_ceil(4), 1, s.h);
         par_chunks(bytemuck_words(&mut words), group_words * 4, |g, bytes| {
             let src = match src {
                 Src::Planes(src) => src,
@@ -63,25 +64,42 @@ impl PackedQConv {
                 }
                 return;
             }
-            for c in 4 * g..(4 * g + 4).min(s.ci) {
-                for y in 0..s.h {
-                    let row = &src[(c * s.h + y) * s.w..(c * s.h + y + 1) * s.w];
-                    let yp = y + s.pad[0];
-                    if s.stride == 1 {
-                        let at = yp * wq + s.pad[1];
-                        for (x, &v) in row.iter().enumerate() {
-                            bytes[(at + x) * 4 + c % 4] = v ^ flip;
+            // Channel by channel, byte by byte; the rows in parts over the threads where the
+            // groups alone would leave threads idle (backbone layer 1: three channels, one
+            // group, 287 rows of 287 bytes).
+            let per = s.h.div_ceil(row_parts);
+            let len = bytes.len();
+            let dst = SyncPtr(bytes.as_mut_ptr());
+            // The `n` words from word `at` of this group's chunk, as bytes: the words of one
+            // padded row (each row's runs lie in rows of its phases that no other row has).
+            let run = |at: usize, n: usize| {
+                assert!((at + n) * 4 <= len, "PackedQConv: a row's words past its group");
+                // SAFETY: within the chunk (asserted); each part writes its own rows' words
+                // alone, and a part's runs are used one at a time.
+                unsafe { std::slice::from_raw_parts_mut(dst.at(at * 4), n * 4) }
+            };
+            par_for(row_parts, |part| {
+                for c in 4 * g..(4 * g + 4).min(s.ci) {
+                    for y in part * per..((part + 1) * per).min(s.h) {
+                        let row = &src[(c * s.h + y) * s.w..(c * s.h + y + 1) * s.w];
+                        let yp = y + s.pad[0];
+                        if s.stride == 1 {
+                            let words = run(yp * wq + s.pad[1], s.w);
+                            for (word, &v) in words.chunks_exact_mut(4).zip(row) {
+                                word[c % 4] = v ^ flip;
+                            }
+                            continue;
                         }
-                        continue;
-                    }
-                    // Stride 2: even and odd padded columns go to the row's two phases.
-                    for (first, at) in s.phase_runs(yp) {
-                        for (i, &v) in row[first..].iter().step_by(2).enumerate() {
-                            bytes[(at + i) * 4 + c % 4] = v ^ flip;
+                        // Stride 2: even and odd padded columns go to the row's two phases.
+                        for (first, at) in s.phase_runs(yp) {
+                            let words = run(at, (s.w - first).div_ceil(2));
+                            for (word, &v) in words.chunks_exact_mut(4).zip(row[first..].iter().step_by(2)) {
+                                word[c % 4] = v ^ flip;
+                            }
                         }
                     }
                 }
-            }
+            });
         });
         let (words, taps) = (&words, &self.layout.taps);
         #[cfg(target_arch = "x86_64")]
