@@ -1,6 +1,6 @@
 //! The operators' threads: tract's executor's pool, the work each operator hands it
-//! ([`par_for`], [`par_chunks`]), when an operator is too small to split, and the pointer the
-//! threads share to write disjoint outputs.
+//! ([`par_for`], [`par_chunks`]), how finely blocks of work are cut for it ([`parts`]), when an
+//! operator is too small to split, and the pointer the threads share to write disjoint outputs.
 
 /// A pointer that threads writing disjoint elements share.
 pub(super) struct SyncPtr<T>(pub(super) *mut T);
