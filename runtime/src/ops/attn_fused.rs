@@ -17,10 +17,10 @@ use tract_nnef::tract_core::ops::nn::{Softmax, SoftmaxKind};
 
 use super::act::{other_const, sole_consumer};
 use super::attention::{gemm, keys_transposed, values_rows, View, MR, NR};
-use super::par::parts;
+use super::par::{par_runs, parts};
 use super::permute::Permute;
 use super::softmax::softmax_row;
-use super::{output_tensor_written, par_for, threads, SyncPtr};
+use super::{output_tensor_written, threads, SyncPtr};
 
 /// Query rows whose scores are made, scaled, normalised and mixed together (a multiple of the
 /// product tile's [`MR`] rows; 24 rows of 242 scores are 23 KB).
@@ -98,16 +98,11 @@ impl EvalOp for Attention {
         let (ldk, ldv) = (row.next_multiple_of(NR), n.next_multiple_of(NR));
         // Each head whole when there are at least twice as many heads as threads; else its rows
         // in parts, so that every thread has work ([`parts`]).
-        let parts = parts(heads, 2 * threads(), m.div_ceil(MR));
-        let per_part = m.div_ceil(parts).next_multiple_of(MR);
+        let tiles = m.div_ceil(MR);
         let fill = |out: &mut [f32]| {
             let dst = SyncPtr(out.as_mut_ptr());
-            par_for(heads * parts, |item| {
-                let (a, first) = (item / parts, (item % parts) * per_part);
-                let last = m.min(first + per_part);
-                if first >= last {
-                    return;
-                }
+            par_runs(heads, parts(heads, 2 * threads(), tiles), tiles, |a, run| {
+                let (first, last) = (run.start * MR, m.min(run.end * MR));
                 let kt = keys_transposed(ks, &self.keys, [k, p], a, ldk);
                 let va = values_rows(vs, &self.values, [k, n], a, ldv);
                 let (mut scores, mut mixed) = (vec![0f32; BLOCK * row], vec![0f32; BLOCK * n]);

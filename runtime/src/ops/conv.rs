@@ -8,6 +8,7 @@
 //! against about 100 for ONNX Runtime. The direct form reads every tap's inputs in place, with
 //! no im2col buffer and no packing of the activations.
 
+use std::ops::Range;
 use std::sync::Arc;
 
 use tract_nnef::internal::*;
@@ -17,7 +18,7 @@ use tract_nnef::tract_core::ops::nn::DataFormat;
 use super::act::{output_fact, reshape_output, Activation, Tail};
 use super::conv_kernel::{channel_block, Layout, MAX_PX, ROWS};
 use super::conv_lanes::LanePack;
-use super::par::{par_for, parts, SyncPtr};
+use super::par::{par_runs, parts, SyncPtr};
 use super::scratch::lend;
 use super::{all_ones, output_tensor_written, pads_2d, par_chunks, same_bits, serial_if_small};
 
@@ -149,15 +150,11 @@ impl PackedConv {
             static RUN: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
         }
         let Layout { wp, oh, ow, .. } = *self.layout;
-        let (co, plane, per) = (self.shape.co, oh * ow, oh.div_ceil(parts));
+        let (co, plane) = (self.shape.co, oh * ow);
         assert_eq!(out.len(), co * plane);
         let dst = SyncPtr(out.as_mut_ptr());
-        par_for(co.div_ceil(ROWS) * parts, |item| {
-            let (b, y0) = (item / parts, item % parts * per);
-            let (rows, y1) = (ROWS.min(co - b * ROWS), (y0 + per).min(oh));
-            if y0 >= y1 {
-                return;
-            }
+        par_runs(co.div_ceil(ROWS), parts, oh, |b, Range { start: y0, end: y1 }| {
+            let rows = ROWS.min(co - b * ROWS);
             let run = Layout { taps: self.layout.taps.clone(), wp, oh: y1 - y0, ow };
             let n = (y1 - y0) * ow;
             let (weights, bias) = self.block(b);

@@ -20,7 +20,7 @@
 use super::act::Activation;
 use super::conv::ConvShape;
 use super::conv_kernel::{tile_positions, Layout, ROWS};
-use super::{par_for, with_words, SyncPtr};
+use super::{with_words, SyncPtr};
 
 #[cfg(test)]
 mod tests;
@@ -360,14 +360,7 @@ pub(super) fn for_each_item(blocks: usize, tiles: usize, f: impl Fn(usize, usize
     // One thread: each block whole (its weights read once; split in two, the second half
     // read them again from L3 in a graph: PRL-Track's template layer 4 and zf5 5-15% slower).
     let parts = super::par::parts(blocks, 12, tiles);
-    let per_part = tiles.div_ceil(parts);
-    par_for(blocks * parts, |item| {
-        let first = (item % parts) * per_part;
-        let count = per_part.min(tiles.saturating_sub(first));
-        if count > 0 {
-            f(item / parts, first, count);
-        }
-    });
+    super::par::par_runs(blocks, parts, tiles, |b, run| f(b, run.start, run.len()));
 }
 
 /// The outputs held in `sums` (`[tile][position][oc]`, tiles of `px` positions from tile

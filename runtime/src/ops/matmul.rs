@@ -13,8 +13,8 @@ use std::sync::Arc;
 use tract_nnef::internal::*;
 use tract_nnef::tract_core::ops::einsum::EinSum;
 
-use super::par::parts;
-use super::{par_for, SyncPtr};
+use super::par::{par_runs, parts};
+use super::SyncPtr;
 
 /// Output features per packed panel.
 const PANEL: usize = 32;
@@ -90,14 +90,11 @@ impl EvalOp for ConstMatMul {
             let dst = SyncPtr(out.as_mut_ptr());
             // Each panel whole, or its rows in runs where whole panels would leave threads idle
             // (HMG's 576 features, 18 panels, over eight threads: [`parts`]).
-            let panels = m.len.div_ceil(PANEL);
-            let parts = parts(panels, 1, n.len.div_ceil(ROWS));
-            let per = n.len.div_ceil(ROWS).div_ceil(parts) * ROWS;
-            par_for(panels * parts, |item| {
-                let (p, first) = (item / parts, item % parts * per);
+            let (panels, tiles) = (m.len.div_ceil(PANEL), n.len.div_ceil(ROWS));
+            par_runs(panels, parts(panels, 1, tiles), tiles, |p, run| {
                 let panel = &self.panels[p * k.len * PANEL..(p + 1) * k.len * PANEL];
                 let features = PANEL.min(m.len - p * PANEL);
-                for j0 in (first..n.len.min(first + per)).step_by(ROWS) {
+                for j0 in (run.start * ROWS..n.len.min(run.end * ROWS)).step_by(ROWS) {
                     let tile = tile(panel, rows, k.len, j0, ROWS.min(n.len - j0));
                     for (r, acc) in tile.iter().enumerate().take(n.len - j0) {
                         for (f, &v) in acc.iter().enumerate().take(features) {

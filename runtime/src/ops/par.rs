@@ -1,6 +1,9 @@
 //! The operators' threads: tract's executor's pool, the work each operator hands it
-//! ([`par_for`], [`par_chunks`]), how finely blocks of work are cut for it ([`parts`]), when an
-//! operator is too small to split, and the pointer the threads share to write disjoint outputs.
+//! ([`par_for`], [`par_chunks`]), how finely blocks of work are cut for it ([`parts`],
+//! [`par_runs`]), when an operator is too small to split, and the pointer the threads share to
+//! write disjoint outputs.
+
+use std::ops::Range;
 
 /// A pointer that threads writing disjoint elements share.
 pub(super) struct SyncPtr<T>(pub(super) *mut T);
@@ -55,6 +58,21 @@ fn split(blocks: usize, min_items: usize, most: usize, threads: usize) -> usize 
         p += 1;
     }
     p
+}
+
+/// Run `f(block, run)` for each of `blocks` blocks of `len` units (channels' rows, tiles) cut
+/// into `parts` runs of equal length (the last shorter; [`parts`] chooses how many), on tract's
+/// threads; runs past the end are skipped.
+pub(super) fn par_runs(blocks: usize, parts: usize, len: usize, f: impl Fn(usize, Range<usize>) + Sync) {
+    let parts = parts.max(1);
+    let per = len.div_ceil(parts);
+    par_for(blocks * parts, |item| {
+        let first = item % parts * per;
+        let end = (first + per).min(len);
+        if first < end {
+            f(item / parts, first..end);
+        }
+    });
 }
 
 /// Multiply-adds under which an operator runs on the calling thread alone, even where its graph

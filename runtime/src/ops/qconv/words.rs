@@ -4,13 +4,17 @@
 //! the sums requantised; and the byte-layout helpers that copy: rows of channels into words,
 //! four planes interleaved, the output transposed to positions first.
 
-use super::super::par::parts;
+use std::ops::Range;
+
+use super::super::par::{par_runs, parts};
+#[cfg(target_arch = "x86_64")]
+use super::super::par_for;
 #[cfg(target_arch = "aarch64")]
 use super::super::qconv_kernel::tiles_sdot;
 use super::super::qconv_kernel::{bytemuck_words, tiles_avx2, tiles_vnni};
 #[cfg(target_arch = "x86_64")]
 use super::super::qconv_kernel::{tiles_avx2_requant, tiles_vnni_requant, Planes};
-use super::super::{par_chunks, par_for, with_words, SyncPtr};
+use super::super::{par_chunks, with_words, SyncPtr};
 use super::{PackedQConv, WordsPath, PX, ROWS};
 
 impl PackedQConv {
@@ -67,7 +71,6 @@ impl PackedQConv {
             // Channel by channel, byte by byte; the rows in parts over the threads where the
             // groups alone would leave threads idle (backbone layer 1: three channels, one
             // group, 287 rows of 287 bytes).
-            let per = s.h.div_ceil(row_parts);
             let len = bytes.len();
             let dst = SyncPtr(bytes.as_mut_ptr());
             // The `n` words from word `at` of this group's chunk, as bytes: the words of one
@@ -78,9 +81,9 @@ impl PackedQConv {
                 // alone, and a part's runs are used one at a time.
                 unsafe { std::slice::from_raw_parts_mut(dst.at(at * 4), n * 4) }
             };
-            par_for(row_parts, |part| {
+            par_runs(1, row_parts, s.h, |_, ys| {
                 for c in 4 * g..(4 * g + 4).min(s.ci) {
-                    for y in part * per..((part + 1) * per).min(s.h) {
+                    for y in ys.clone() {
                         let row = &src[(c * s.h + y) * s.w..(c * s.h + y + 1) * s.w];
                         let yp = y + s.pad[0];
                         if s.stride == 1 {
@@ -165,15 +168,10 @@ impl PackedQConv {
         // rows in runs ([`parts`]): a run's positions start at its first row, and its sums (exact
         // integers) are those of the whole block's.
         assert_eq!(dst.len(), s.co * plane);
-        let parts = parts(s.co.div_ceil(ROWS), 1, oh);
-        let per = oh.div_ceil(parts);
+        let blocks = s.co.div_ceil(ROWS);
         let out = SyncPtr(dst.as_mut_ptr());
-        par_for(s.co.div_ceil(ROWS) * parts, |item| {
-            let (b, y0) = (item / parts, item % parts * per);
-            let (rows, y1) = (ROWS.min(s.co - b * ROWS), (y0 + per).min(oh));
-            if y0 >= y1 {
-                return;
-            }
+        par_runs(blocks, parts(blocks, 1, oh), oh, |b, Range { start: y0, end: y1 }| {
+            let rows = ROWS.min(s.co - b * ROWS);
             let (n, positions) = ((y1 - y0) * ow, (y1 - y0 - 1) * wq + ow);
             let words = &words[y0 * wq..];
             // SAFETY: rows `y0 .. y1` of channel `b·ROWS + r < co`'s plane, within `dst`
